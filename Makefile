@@ -1,0 +1,43 @@
+# Thin wrappers over the `nmjax` command; every option can also be passed through ARGS.
+PYTHON ?= python3
+VENV := .venv
+NMJAX := $(VENV)/bin/nmjax
+DATA ?= synth-hand
+PRESET ?= default
+STEPS ?=
+RUN ?=
+RESUME ?= 0
+ARGS ?=
+
+SKEL_FLAGS := --data $(DATA) --preset $(PRESET) $(if $(STEPS),--steps $(STEPS)) \
+	$(if $(RUN),--run $(RUN)) $(if $(filter 1,$(RESUME)),--resume)
+
+.PHONY: install test test-slow lint format train-skel train-dyn prepare-data clean
+
+install:
+	$(PYTHON) -m venv $(VENV)
+	$(VENV)/bin/pip install --upgrade pip
+	$(VENV)/bin/pip install -e '.[dev]'
+
+test:
+	$(VENV)/bin/pytest -q
+
+test-slow:
+	$(VENV)/bin/pytest -q -m slow
+
+lint:
+	$(VENV)/bin/ruff check src tests experiments
+	$(VENV)/bin/ruff format --check src tests experiments
+
+format:
+	$(VENV)/bin/ruff format src tests experiments
+	$(VENV)/bin/ruff check --fix src tests experiments
+
+prepare-data:
+	$(NMJAX) prepare-data --data $(DATA) $(ARGS)
+
+train-skel:
+	$(NMJAX) train-skel $(SKEL_FLAGS) $(ARGS)
+
+clean:
+	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

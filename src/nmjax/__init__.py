@@ -1,0 +1,1 @@
+"""nmjax: Neural Marionette in JAX/Flax."""

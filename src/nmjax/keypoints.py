@@ -1,0 +1,103 @@
+"""Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps (DESIGN §6).
+
+Conventions (DESIGN §4): the coordinate of an n-cell axis is `linspace(-1, 1, n)`, axes in 'ij'
+order (grid axis 0 is x); keypoints are `(..., K, 4)` with xyz in the normalised cube and the
+intensity alpha last. Everything here is pure and works under `jit`, `vmap` and `grad`.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+
+_EPS = 1e-6
+
+
+def axis_coords(n: int) -> Array:
+    """Coordinates of the n cells of one grid axis, `linspace(-1, 1, n)`. Shape (n,)."""
+    return jnp.linspace(-1.0, 1.0, n, dtype=jnp.float32)
+
+
+def coord_grid(n: int) -> Array:
+    """Coordinates of every cell of an n^3 grid.
+
+    Args:
+        n: cells per axis.
+
+    Returns:
+        (n, n, n, 3) float32; `grid[i, j, l] = (x_i, y_j, z_l)` with x = y = z = linspace(-1, 1, n).
+    """
+    x = axis_coords(n)
+    return jnp.stack(jnp.meshgrid(x, x, x, indexing="ij"), axis=-1)
+
+
+def add_coord_channels(x: Array) -> Array:
+    """CoordConv input: appends the three coordinate channels of the grid (DESIGN §6).
+
+    Args:
+        x: (..., n, n, n, C) channels-last feature volume.
+
+    Returns:
+        (..., n, n, n, C + 3), the last three channels being `coord_grid(n)` broadcast over the
+        leading axes.
+    """
+    n = x.shape[-2]
+    if x.ndim < 4 or x.shape[-4] != n or x.shape[-3] != n:
+        raise ValueError(f"add_coord_channels: expected (..., n, n, n, C) input, got {x.shape}")
+    grid = jnp.broadcast_to(coord_grid(n).astype(x.dtype), (*x.shape[:-1], 3))
+    return jnp.concatenate([x, grid], axis=-1)
+
+
+def heatmap_to_keypoints(heatmaps: Array) -> Array:
+    """Keypoints from non-negative heatmaps (paper Eq. 6 -> x = (mu, alpha), DESIGN §6).
+
+    alpha_k = mean of heatmap k over the grid, divided by (max over K of those means + 1e-6).
+    mu_k along axis d = expectation of `linspace(-1, 1, g)` under the marginal of heatmap k on that
+    axis (sum over the two other axes), normalised as marginal / (sum of marginal + 1e-6).
+
+    Args:
+        heatmaps: (..., g, g, g, K) non-negative (softplus) heatmaps.
+
+    Returns:
+        (..., K, 4) keypoints: xyz then alpha in [0, 1].
+    """
+    if heatmaps.ndim < 4:
+        raise ValueError(f"heatmap_to_keypoints: expected (..., g, g, g, K), got {heatmaps.shape}")
+    g = heatmaps.shape[-2]
+    mean = jnp.mean(heatmaps, axis=(-4, -3, -2))  # (..., K)
+    alpha = mean / (jnp.max(mean, axis=-1, keepdims=True) + _EPS)
+    coords = axis_coords(g)
+    mus = []
+    for axis in (-4, -3, -2):  # x, y, z: three fixed axes, not a loop over data
+        others = tuple(a for a in (-4, -3, -2) if a != axis)
+        marginal = jnp.sum(heatmaps, axis=others)  # (..., g, K)
+        prob = marginal / (jnp.sum(marginal, axis=-2, keepdims=True) + _EPS)
+        mus.append(jnp.einsum("...gk,g->...k", prob, coords))
+    return jnp.stack([*mus, alpha], axis=-1)
+
+
+def gaussian_maps(keypoints: Array, sigma: float, n: int) -> Array:
+    """Renders keypoints as isotropic gaussian maps on an n^3 grid (paper Eq. 7, DESIGN §6).
+
+    g_k(x) = alpha_k * prod_d exp(-(x_d - mu_kd)^2 / (2 (sigma / n)^2)), i.e. the width is `sigma`
+    cells of the g-cell grid expressed as sigma / n in normalised units (the released
+    convention; one cell is actually 2 / (n - 1) wide).
+
+    Args:
+        keypoints: (..., K, 4) xyz and alpha.
+        sigma: width in cells (sigma_g of Tables 4-8).
+        n: cells per axis of the output grid.
+
+    Returns:
+        (..., n, n, n, K) float32 maps.
+    """
+    coords = axis_coords(n)
+    width = sigma / n
+    mu = keypoints[..., :3]  # (..., K, 3)
+    alpha = keypoints[..., 3]  # (..., K)
+    # Separable: one 1-D profile per axis, then an outer product.
+    profile = jnp.exp(-jnp.square(coords[:, None, None] - mu[..., None, :, :]) / (2 * width**2))
+    # profile: (..., n, K, 3)
+    px, py, pz = profile[..., 0], profile[..., 1], profile[..., 2]  # (..., n, K)
+    maps = jnp.einsum("...ik,...jk,...lk->...ijlk", px, py, pz)
+    return maps * alpha[..., None, None, None, :]

@@ -1,0 +1,108 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nmjax import keypoints as kpm
+
+SETTINGS = settings(max_examples=15, deadline=None)
+
+
+def test_coord_grid_ij_order():
+    grid = np.asarray(kpm.coord_grid(4))
+    x = np.linspace(-1, 1, 4)
+    assert grid.shape == (4, 4, 4, 3)
+    np.testing.assert_allclose(grid[2, 0, 3], [x[2], x[0], x[3]], atol=1e-6)
+    np.testing.assert_allclose(grid[:, 1, 1, 0], x, atol=1e-6)
+
+
+def test_add_coord_channels():
+    x = jnp.ones((2, 3, 5, 5, 5, 2))
+    out = kpm.add_coord_channels(x)
+    assert out.shape == (2, 3, 5, 5, 5, 5)
+    np.testing.assert_allclose(out[1, 2, ..., 2:], kpm.coord_grid(5), atol=1e-6)
+    np.testing.assert_allclose(out[..., :2], 1.0)
+    with pytest.raises(ValueError, match="n, n, n, C"):
+        kpm.add_coord_channels(jnp.ones((4, 5, 5, 2)))
+
+
+def test_delta_heatmap_gives_cell_coordinate():
+    g, k = 6, 3
+    cells = [(0, 5, 2), (3, 3, 1), (5, 0, 4)]
+    heat = np.zeros((g, g, g, k), np.float32)
+    for i, c in enumerate(cells):
+        heat[c + (i,)] = 200.0 if i == 0 else 100.0
+    kp = np.asarray(kpm.heatmap_to_keypoints(jnp.asarray(heat)))
+    x = np.linspace(-1, 1, g)
+    for i, c in enumerate(cells):
+        np.testing.assert_allclose(kp[i, :3], x[list(c)], atol=1e-5)
+    # alpha: mean / max mean -> 1 for the strongest, 0.5 for the others.
+    np.testing.assert_allclose(kp[:, 3], [1.0, 0.5, 0.5], atol=1e-5)
+
+
+def _numpy_keypoints(heat):
+    g = heat.shape[-2]
+    x = np.linspace(-1, 1, g)
+    mean = heat.mean(axis=(-4, -3, -2))
+    alpha = mean / (mean.max(axis=-1, keepdims=True) + 1e-6)
+    mu = []
+    for others in ((-3, -2), (-4, -2), (-4, -3)):
+        m = heat.sum(axis=others)
+        p = m / (m.sum(axis=-2, keepdims=True) + 1e-6)
+        mu.append((p * x[:, None]).sum(axis=-2))
+    return np.stack([*mu, alpha], axis=-1)
+
+
+@SETTINGS
+@given(
+    batch=st.integers(1, 3),
+    g=st.integers(2, 6),
+    k=st.integers(1, 4),
+    seed=st.integers(0, 2**16),
+)
+def test_heatmap_to_keypoints_matches_numpy(batch, g, k, seed):
+    heat = np.random.default_rng(seed).random((batch, g, g, g, k)).astype(np.float32)
+    got = kpm.heatmap_to_keypoints(jnp.asarray(heat))
+    np.testing.assert_allclose(got, _numpy_keypoints(heat), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(jax.jit(kpm.heatmap_to_keypoints)(heat), got, rtol=1e-5, atol=1e-6)
+    assert np.all((got[..., :3] >= -1 - 1e-5) & (got[..., :3] <= 1 + 1e-5))
+
+
+@SETTINGS
+@given(n=st.integers(2, 7), k=st.integers(1, 3), sigma=st.floats(0.5, 2.0), seed=st.integers(0, 99))
+def test_gaussian_maps_matches_numpy(n, k, sigma, seed):
+    rng = np.random.default_rng(seed)
+    kp = np.concatenate([rng.uniform(-1, 1, (2, k, 3)), rng.uniform(0, 1, (2, k, 1))], -1)
+    kp = kp.astype(np.float32)
+    got = np.asarray(kpm.gaussian_maps(jnp.asarray(kp), sigma, n))
+    grid = np.stack(np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij"), -1)
+    d2 = ((grid[None, :, :, :, None, :] - kp[:, None, None, None, :, :3]) ** 2).sum(-1)
+    want = kp[:, None, None, None, :, 3] * np.exp(-d2 / (2 * (sigma / n) ** 2))
+    assert got.shape == (2, n, n, n, k)
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-6)
+
+
+def test_gaussian_map_peak_and_round_trip():
+    n = 9
+    x = np.linspace(-1, 1, n)
+    kp = jnp.array([[x[2], x[6], x[4], 0.7]], jnp.float32)
+    maps = kpm.gaussian_maps(kp, 1.0, n)
+    assert np.unravel_index(np.argmax(maps[..., 0]), (n, n, n)) == (2, 6, 4)
+    np.testing.assert_allclose(maps.max(), 0.7, rtol=1e-6)
+    back = kpm.heatmap_to_keypoints(maps)
+    np.testing.assert_allclose(back[0, :3], kp[0, :3], atol=1e-4)
+
+
+def test_gradients_finite():
+    heat = jax.random.uniform(jax.random.key(0), (2, 4, 4, 4, 3))
+
+    def f(h):
+        kp = kpm.heatmap_to_keypoints(h)
+        return jnp.sum(kpm.gaussian_maps(kp, 1.5, 4) ** 2)
+
+    g = jax.grad(f)(heat)
+    assert np.all(np.isfinite(g))
+    g0 = jax.grad(f)(jnp.zeros_like(heat))  # all-zero heatmaps: the eps guards keep it finite
+    assert np.all(np.isfinite(g0))

@@ -1,0 +1,253 @@
+"""`nmjax prepare-data`: write a dataset in the nmjax layout (see `nmjax.data.datasets`).
+
+    nmjax prepare-data --data synth-hand [--sequences N] [--frames N] [--seed S]
+    nmjax prepare-data --data dfaust --from RAW_DIR [--root DIR] [--points 20000]
+
+Synthetic names call `nmjax.data.synthetic.generate`. Real names convert raw mesh sequences:
+`RAW_DIR/<seq>/` holds one mesh per frame (.obj / .ply / .off, ordered by name with numbers
+compared as numbers, so frame_2 < frame_10) and optionally `joints.npy` (T, J, 3); every frame
+becomes `--points` points sampled area-uniformly from its surface (trimesh, seeded per frame).
+The train/test split comes from `RAW_DIR/split.json` when present, else the deterministic 9:1
+split by frame count. Every file is written atomically and `meta.json` last, so an interrupted run
+never leaves a dataset that loads as complete.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from nmjax import io
+from nmjax.config import DATASETS, dataset_spec
+from nmjax.data.datasets import (
+    JOINT_FILE_PATTERNS,
+    SPLITS,
+    SYNTHETIC_DATASETS,
+    dataset_root,
+    read_split_file,
+    split_by_frames,
+)
+
+MESH_SUFFIXES = (".obj", ".ply", ".off")
+DEFAULT_POINTS = 20_000
+
+
+def natural_key(path: Path) -> list:
+    """Sort key comparing digit runs as numbers: frame_2 before frame_10."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def find_sequences(source: Path) -> dict[str, list[Path]]:
+    """Sequence name -> its mesh frames in order, for every sub-folder of `source` with meshes."""
+    if not source.is_dir():
+        raise FileNotFoundError(
+            f"--from {source}: no such folder; it should hold one folder of mesh frames "
+            f"({'/'.join(MESH_SUFFIXES)}) per sequence"
+        )
+    sequences = {}
+    for folder in sorted(p for p in source.iterdir() if p.is_dir()):
+        frames = sorted(
+            (p for p in folder.iterdir() if p.suffix.lower() in MESH_SUFFIXES), key=natural_key
+        )
+        if frames:
+            sequences[folder.name] = frames
+    if not sequences:
+        raise FileNotFoundError(
+            f"--from {source}: no sub-folder holds {'/'.join(MESH_SUFFIXES)} frames; expected "
+            f"{source}/<sequence>/<frame>.obj"
+        )
+    return sequences
+
+
+def sample_frame(path: Path, points: int, seed: int) -> np.ndarray:
+    """(points, 3) float32 points sampled area-uniformly on the surface of the mesh at `path`."""
+    import trimesh  # lazy: keeps `nmjax --help` fast
+
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as err:  # trimesh raises many types for malformed files
+        raise ValueError(f"{path}: cannot read the mesh ({err})") from err
+    if len(mesh.faces) == 0 or not mesh.area > 0:
+        raise ValueError(f"{path}: mesh has no surface (faces: {len(mesh.faces)}) to sample from")
+    sampled, _ = trimesh.sample.sample_surface(mesh, points, seed=seed)
+    sampled = np.asarray(sampled, dtype=np.float32)
+    if not np.isfinite(sampled).all():
+        raise ValueError(f"{path}: mesh vertices contain NaN or inf")
+    return sampled
+
+
+def _read_raw_joints(path: Path, num_frames: int) -> np.ndarray:
+    joints = np.load(path, allow_pickle=False)
+    if joints.ndim != 3 or joints.shape[-1] != 3 or joints.shape[0] != num_frames:
+        raise ValueError(
+            f"{path}: joints must have shape (T, J, 3) with T = {num_frames} mesh frames, "
+            f"got {joints.shape}"
+        )
+    if not np.isfinite(joints).all():
+        raise ValueError(f"{path}: joints contain NaN or inf")
+    return joints.astype(np.float32)
+
+
+def _clear(root: Path) -> None:
+    """Removes a previous dataset's files (only the nmjax layout, nothing else) from `root`."""
+    for split in SPLITS:
+        for sub in ("vertices", "joints"):
+            if (root / split / sub).is_dir():
+                shutil.rmtree(root / split / sub)
+    for name in ("meta.json", "split.json"):
+        (root / name).unlink(missing_ok=True)
+
+
+def prepare_meshes(
+    name: str,
+    source: Path,
+    root: Path,
+    *,
+    points: int = DEFAULT_POINTS,
+    seed: int = 0,
+    max_sequences: int | None = None,
+    max_frames: int | None = None,
+) -> Path:
+    """Converts raw mesh sequences under `source` into the prepared layout under `root`.
+
+    Returns:
+      `root`.
+    """
+    from tqdm import tqdm
+
+    sequences = find_sequences(source)
+    names = list(sequences)[:max_sequences]
+    frames = {seq: sequences[seq][:max_frames] for seq in names}
+    short = [seq for seq in names if len(frames[seq]) < 2]
+    if short:
+        raise ValueError(f"--from {source}: sequences with fewer than 2 frames: {short[:5]}")
+    split_file = source / "split.json"
+    if split_file.is_file():
+        split = read_split_file(split_file)
+        split = {s: [seq for seq in split[s] if seq in frames] for s in SPLITS}
+        unlisted = sorted(set(names) - set(split["train"]) - set(split["test"]))
+        if unlisted:
+            raise ValueError(f"{split_file}: sequences in neither split: {unlisted[:5]}")
+    else:
+        split = split_by_frames({seq: len(frames[seq]) for seq in names})
+    pattern = JOINT_FILE_PATTERNS[name]
+    total = sum(len(f) for f in frames.values())
+    with tqdm(total=total, unit="frame", desc=f"prepare {name}") as bar:
+        for split_name in SPLITS:
+            for seq in split[split_name]:
+                paths = frames[seq]
+                bar.set_postfix_str(seq)
+                # Seeds differ per sequence and frame; the same seed gives the same bytes.
+                base = np.random.SeedSequence([seed, names.index(seq)])
+                seeds = base.generate_state(len(paths))
+                vertices = np.empty((len(paths), points, 3), dtype=np.float32)
+                for t, path in enumerate(paths):
+                    vertices[t] = sample_frame(path, points, int(seeds[t]))
+                    bar.update(1)
+                raw_joints = source / seq / "joints.npy"
+                if raw_joints.is_file():
+                    joints = _read_raw_joints(raw_joints, len(sequences[seq]))[: len(paths)]
+                    io.save_npy(root / split_name / "joints" / pattern.format(seq=seq), joints)
+                io.save_npy(root / split_name / "vertices" / f"{seq}.npy", vertices)
+    meta = {}
+    if (source / "meta.json").is_file():
+        meta = json.loads((source / "meta.json").read_text())
+    meta.update(
+        name=name,
+        sample_rate=DATASETS[name].sample_rate,
+        points=points,
+        seed=seed,
+        source=str(source),
+        frames={seq: len(frames[seq]) for seq in names},
+    )
+    io.write_json(root / "split.json", split)
+    io.write_json(root / "meta.json", meta)
+    return root
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="nmjax prepare-data",
+        description="Write a dataset in the layout <root>/<split>/{vertices,joints}/<seq>.npy",
+    )
+    parser.add_argument("--data", required=True, help=f"one of {', '.join(sorted(DATASETS))}")
+    parser.add_argument(
+        "--from",
+        dest="source",
+        type=Path,
+        help="real datasets: folder of raw sequences, one sub-folder of mesh frames per sequence",
+    )
+    parser.add_argument("--root", type=Path, help="output folder (default data/<name>)")
+    parser.add_argument("--seed", type=int, default=0, help="sampling / generation seed")
+    parser.add_argument("--sequences", type=int, help="number of sequences (default: all)")
+    parser.add_argument("--frames", type=int, help="frames per sequence (default: all)")
+    parser.add_argument("--points", type=int, default=DEFAULT_POINTS, help="points per frame")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="replace a dataset already prepared at --root"
+    )
+    return parser
+
+
+def main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except (FileNotFoundError, ValueError) as err:
+        print(f"nmjax prepare-data: {err}", file=sys.stderr)
+        return 1
+
+
+def _fail(message: str) -> int:
+    print(f"nmjax prepare-data: {message}", file=sys.stderr)
+    return 2
+
+
+def _run(args: argparse.Namespace) -> int:
+    dataset_spec(args.data)
+    for flag, least in (("sequences", 1), ("frames", 2), ("points", 1)):
+        value = getattr(args, flag)
+        if value is not None and value < least:
+            return _fail(f"--{flag} must be >= {least}, got {value}")
+    synthetic_data = args.data in SYNTHETIC_DATASETS
+    if synthetic_data and args.source is not None:
+        return _fail(f"{args.data} is generated; --from is only for real datasets")
+    if not synthetic_data and args.source is None:
+        return _fail(
+            f"--data {args.data} needs --from DIR, the raw mesh sequences (one folder of "
+            ".obj/.ply/.off frames per sequence); or use --data synth-hand"
+        )
+    root = dataset_root(args.data, args.root)
+    if (root / "meta.json").is_file():
+        if not args.overwrite:
+            print(f"{root} already holds a prepared {args.data!r}; pass --overwrite to replace it")
+            return 0
+        _clear(root)
+    if synthetic_data:
+        from nmjax.data import synthetic  # lazy: only synthetic sets need the generator
+
+        synthetic.generate(
+            args.data,
+            root,
+            num_sequences=args.sequences,
+            frames=args.frames,
+            points=args.points,
+            seed=args.seed,
+        )
+    else:
+        prepare_meshes(
+            args.data,
+            args.source,
+            root,
+            points=args.points,
+            seed=args.seed,
+            max_sequences=args.sequences,
+            max_frames=args.frames,
+        )
+    print(f"wrote {args.data} to {root}")
+    return 0

@@ -173,7 +173,8 @@ def split_by_frames(frame_counts: dict[str, int]) -> dict[str, list[str]]:
             break
         test.append(name)
         held += frame_counts[name]
-    train = [name for name in names if name not in set(test)]
+    held_out = set(test)
+    train = [name for name in names if name not in held_out]
     return {"train": sorted(train), "test": sorted(test)}
 
 
@@ -204,7 +205,8 @@ def _sequence_files(root: Path) -> dict[str, tuple[Path, Path]]:
 
 
 def _ensure_generated(name: str, root: Path) -> None:
-    if (root / "meta.json").is_file() and any((root / s / "vertices").is_dir() for s in SPLITS):
+    folders = [root / "vertices", *(root / s / "vertices" for s in SPLITS)]
+    if (root / "meta.json").is_file() and any(f.is_dir() for f in folders):
         return
     from nmjax.data import synthetic  # lazy: generation needs trimesh
 

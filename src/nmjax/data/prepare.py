@@ -180,10 +180,13 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--from",
         dest="source",
+        metavar="DIR",
         type=Path,
         help="real datasets: folder of raw sequences, one sub-folder of mesh frames per sequence",
     )
-    parser.add_argument("--root", type=Path, help="output folder (default data/<name>)")
+    parser.add_argument(
+        "--root", type=Path, metavar="DIR", help="output folder (default data/<name>)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="sampling / generation seed")
     parser.add_argument("--sequences", type=int, help="number of sequences (default: all)")
     parser.add_argument("--frames", type=int, help="frames per sequence (default: all)")

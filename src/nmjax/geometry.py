@@ -1,0 +1,321 @@
+"""Rotations and forward kinematics (paper Eqs. 1-2, 24-25; DESIGN §8-9).
+
+Rotation matrices act on column vectors (`R @ d`); their columns are the rotated x, y, z axes.
+Quaternions are (w, x, y, z). Every function is pure and works under `jit`, `vmap` and `grad`
+with finite gradients, including at degenerate inputs (zero vectors, identical rotations).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+_EPS = 1e-8
+
+
+def _safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    """Euclidean norm with gradient 0 (not NaN) at the zero vector."""
+    sq = jnp.sum(jnp.square(x), axis=axis, keepdims=keepdims)
+    positive = sq > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, sq, 1.0)), 0.0)
+
+
+def normalize(x: Array, axis: int = -1, eps: float = _EPS) -> Array:
+    """x / max(||x||, eps) along `axis`."""
+    return x / jnp.maximum(_safe_norm(x, axis=axis, keepdims=True), eps)
+
+
+# --- representations ---------------------------------------------------------------------------
+
+
+def rotation_6d_to_matrix(d6: Array) -> Array:
+    """6D rotation representation (Zhou et al. 2019) -> rotation matrix, by Gram-Schmidt.
+
+    The first three numbers give the x axis (normalised), the last three the y axis after removing
+    its x component; z = x cross y. These are the matrix's columns, so the result is orthonormal
+    with determinant +1 for any input whose two halves are not parallel.
+
+    Args:
+        d6: (..., 6).
+
+    Returns:
+        (..., 3, 3) rotation matrices, columns (x, y, z).
+    """
+    a1, a2 = d6[..., :3], d6[..., 3:]
+    b1 = normalize(a1)
+    b2 = normalize(a2 - jnp.sum(b1 * a2, axis=-1, keepdims=True) * b1)
+    b3 = jnp.cross(b1, b2)
+    return jnp.stack([b1, b2, b3], axis=-1)
+
+
+def matrix_to_rotation_6d(rot: Array) -> Array:
+    """Rotation matrix -> 6D representation: the first two columns, concatenated.
+
+    Args:
+        rot: (..., 3, 3).
+
+    Returns:
+        (..., 6); `rotation_6d_to_matrix` inverts it for rotation matrices.
+    """
+    return jnp.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
+
+
+def axis_angle_to_matrix(axis_angle: Array) -> Array:
+    """Rodrigues' formula: rotation by |w| radians about w / |w|.
+
+    Args:
+        axis_angle: (..., 3) rotation vectors.
+
+    Returns:
+        (..., 3, 3); the identity for a zero vector (with a finite gradient there).
+    """
+    theta = _safe_norm(axis_angle)[..., None, None]
+    small = theta < 1e-6
+    safe_theta = jnp.where(small, 1.0, theta)
+    x, y, z = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
+    zero = jnp.zeros_like(x)
+    skew = jnp.stack(
+        [
+            jnp.stack([zero, -z, y], axis=-1),
+            jnp.stack([z, zero, -x], axis=-1),
+            jnp.stack([-y, x, zero], axis=-1),
+        ],
+        axis=-2,
+    )
+    # sin(t)/t and (1 - cos(t))/t^2 with their Taylor series near 0.
+    a = jnp.where(small, 1.0 - theta**2 / 6, jnp.sin(safe_theta) / safe_theta)
+    b = jnp.where(small, 0.5 - theta**2 / 24, (1.0 - jnp.cos(safe_theta)) / safe_theta**2)
+    eye = jnp.eye(3, dtype=axis_angle.dtype)
+    return eye + a * skew + b * (skew @ skew)
+
+
+def quaternion_to_matrix(quat: Array) -> Array:
+    """Unit quaternion (w, x, y, z) -> rotation matrix (the input is normalised first).
+
+    Args:
+        quat: (..., 4).
+
+    Returns:
+        (..., 3, 3).
+    """
+    w, x, y, z = jnp.moveaxis(normalize(quat), -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return jnp.stack([jnp.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def matrix_to_quaternion(rot: Array) -> Array:
+    """Rotation matrix -> unit quaternion (w, x, y, z) with w >= 0.
+
+    Shepperd's method: of the four candidate formulas, the one with the largest denominator is
+    used, so the result is accurate for every rotation (also near 180 degrees).
+
+    Args:
+        rot: (..., 3, 3) rotation matrices.
+
+    Returns:
+        (..., 4).
+    """
+    m = rot
+    m00, m11, m22 = m[..., 0, 0], m[..., 1, 1], m[..., 2, 2]
+    # 4 q_i^2 for i = w, x, y, z.
+    four_sq = jnp.stack(
+        [
+            1 + m00 + m11 + m22,
+            1 + m00 - m11 - m22,
+            1 - m00 + m11 - m22,
+            1 - m00 - m11 + m22,
+        ],
+        axis=-1,
+    )
+    d21, d02, d10 = (
+        m[..., 2, 1] - m[..., 1, 2],
+        m[..., 0, 2] - m[..., 2, 0],
+        m[..., 1, 0] - m[..., 0, 1],
+    )
+    s21, s02, s10 = (
+        m[..., 2, 1] + m[..., 1, 2],
+        m[..., 0, 2] + m[..., 2, 0],
+        m[..., 1, 0] + m[..., 0, 1],
+    )
+    # Row i: 4 q_i * (w, x, y, z).
+    candidates = jnp.stack(
+        [
+            jnp.stack([four_sq[..., 0], d21, d02, d10], axis=-1),
+            jnp.stack([d21, four_sq[..., 1], s10, s02], axis=-1),
+            jnp.stack([d02, s10, four_sq[..., 2], s21], axis=-1),
+            jnp.stack([d10, s02, s21, four_sq[..., 3]], axis=-1),
+        ],
+        axis=-2,
+    )
+    best = jnp.argmax(four_sq, axis=-1)
+    chosen = jnp.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
+    quat = normalize(chosen)
+    return quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
+
+
+# --- interpolation -----------------------------------------------------------------------------
+
+
+def slerp(q0: Array, q1: Array, t: Array | float) -> Array:
+    """Spherical linear interpolation of unit quaternions along the shorter arc.
+
+    slerp(t) = sin((1 - t) theta) / sin(theta) q0 + sin(t theta) / sin(theta) q1', where q1' is
+    q1 or -q1 (whichever is closer to q0) and cos(theta) = <q0, q1'>; nearly identical inputs fall
+    back to normalised linear interpolation.
+
+    Args:
+        q0, q1: (..., 4) unit quaternions (w, x, y, z).
+        t: interpolation parameter, broadcastable to (...); 0 gives q0, 1 gives q1 (up to sign).
+
+    Returns:
+        (..., 4) unit quaternions.
+    """
+    t = jnp.asarray(t, dtype=q0.dtype)[..., None]
+    dot = jnp.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = jnp.where(dot < 0, -q1, q1)
+    dot = jnp.abs(dot)
+    near = dot > 1.0 - 1e-6
+    theta = jnp.arccos(jnp.where(near, 0.0, jnp.clip(dot, -1.0, 1.0)))
+    sin_theta = jnp.where(near, 1.0, jnp.sin(theta))
+    w0 = jnp.where(near, 1.0 - t, jnp.sin((1.0 - t) * theta) / sin_theta)
+    w1 = jnp.where(near, t, jnp.sin(t * theta) / sin_theta)
+    return normalize(w0 * q0 + w1 * q1)
+
+
+def slerp_matrices(r0: Array, r1: Array, t: Array | float) -> Array:
+    """Slerp between rotation matrices (through quaternions), e.g. local joint rotations.
+
+    Args:
+        r0, r1: (..., 3, 3) rotation matrices.
+        t: broadcastable to (...).
+
+    Returns:
+        (..., 3, 3): r0 at t = 0, r1 at t = 1, the constant-speed geodesic in between.
+    """
+    return quaternion_to_matrix(slerp(matrix_to_quaternion(r0), matrix_to_quaternion(r1), t))
+
+
+# --- forward kinematics (Eq. 2) ----------------------------------------------------------------
+
+
+def tree_levels(parents: Sequence[int] | np.ndarray, order: Sequence[int] | np.ndarray) -> list:
+    """Groups joints by depth below the root (NumPy, at trace time).
+
+    Args:
+        parents: (K,) parent index per joint; the root is its own parent.
+        order: (K,) topological order, root first.
+
+    Returns:
+        list of int arrays: [root], its children, their children, ... (tree depth + 1 levels).
+    """
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    order = np.asarray(order, dtype=np.int64).reshape(-1)
+    k = parents.shape[0]
+    if order.shape[0] != k or sorted(order.tolist()) != list(range(k)):
+        raise ValueError(f"order must be a permutation of 0..{k - 1}, got {order.tolist()}")
+    if np.any(parents < 0) or np.any(parents >= k):
+        raise ValueError(f"parents must index 0..{k - 1}, got {parents.tolist()}")
+    root = int(order[0])
+    if parents[root] != root:
+        raise ValueError(f"order[0]={root} must be the root (its own parent), parents={parents}")
+    depth = np.full(k, -1, dtype=np.int64)
+    depth[root] = 0
+    for j in order[1:]:
+        if j == parents[j] or depth[parents[j]] < 0:
+            raise ValueError(
+                f"order {order.tolist()} is not topological for parents {parents.tolist()}: "
+                f"joint {j} comes before its parent {parents[j]} or is a second root"
+            )
+        depth[j] = depth[parents[j]] + 1
+    return [np.flatnonzero(depth == d) for d in range(int(depth.max()) + 1)]
+
+
+def forward_kinematics_with_rotations(
+    root_pos: Array,
+    local_rots: Array,
+    offsets: Array,
+    parents: Sequence[int] | np.ndarray,
+    order: Sequence[int] | np.ndarray,
+) -> tuple[Array, Array]:
+    """Eq. 2: joint positions and global rotations from local rotations along a skeleton tree.
+
+    R_root = R~_root, mu_root = root_pos; for every other joint k (parents first)
+    R_k = R_parent(k) R~_k and mu_k = mu_parent(k) + R_k d_k. As printed in Eq. 2 (and Eq. 24),
+    a joint's offset is rotated by its own global rotation, which includes its local rotation.
+
+    Vectorised: the joints of one tree depth are updated together, so the trace has one gather /
+    matmul per level (tree depth), never a loop over joints. `parents` and `order` are static
+    (Python / NumPy integers, e.g. from `Skeleton`).
+
+    Args:
+        root_pos: (..., 3) root position.
+        local_rots: (..., K, 3, 3) rotation of each joint relative to its parent.
+        offsets: (K, 3) or (..., K, 3) rest-pose offset d_k from the parent (Eq. 1); the root's
+            is ignored.
+        parents: (K,) parent indices, the root its own parent.
+        order: (K,) topological order, root first.
+
+    Returns:
+        positions (..., K, 3) and global rotations (..., K, 3, 3).
+    """
+    levels = tree_levels(parents, order)
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    k = parents.shape[0]
+    if local_rots.shape[-3:] != (k, 3, 3):
+        raise ValueError(
+            f"local_rots must be (..., {k}, 3, 3) for {k} joints, got {local_rots.shape}"
+        )
+    if offsets.shape[-2:] != (k, 3):
+        raise ValueError(f"offsets must be (K, 3) or (..., K, 3) with K={k}, got {offsets.shape}")
+    lead = jnp.broadcast_shapes(root_pos.shape[:-1], local_rots.shape[:-3], offsets.shape[:-2])
+    local_rots = jnp.broadcast_to(local_rots, (*lead, k, 3, 3))
+    offsets = jnp.broadcast_to(offsets, (*lead, k, 3))
+    root = int(levels[0][0])
+    glob = jnp.zeros_like(local_rots).at[..., root, :, :].set(local_rots[..., root, :, :])
+    pos = jnp.zeros((*lead, k, 3), local_rots.dtype)
+    pos = pos.at[..., root, :].set(jnp.broadcast_to(root_pos, (*lead, 3)))
+    for level in levels[1:]:  # tree depth, not joints
+        par = parents[level]
+        r = glob[..., par, :, :] @ local_rots[..., level, :, :]
+        glob = glob.at[..., level, :, :].set(r)
+        step = jnp.einsum("...kij,...kj->...ki", r, offsets[..., level, :])
+        pos = pos.at[..., level, :].set(pos[..., par, :] + step)
+    return pos, glob
+
+
+def forward_kinematics(
+    root_pos: Array,
+    local_rots: Array,
+    offsets: Array,
+    parents: Sequence[int] | np.ndarray,
+    order: Sequence[int] | np.ndarray,
+) -> Array:
+    """Eq. 2: joint positions (..., K, 3); see `forward_kinematics_with_rotations`."""
+    return forward_kinematics_with_rotations(root_pos, local_rots, offsets, parents, order)[0]
+
+
+def bone_offsets(
+    positions: Array, parents: Sequence[int] | np.ndarray, directions: Array | None = None
+) -> Array:
+    """Eq. 1 / Eq. 25: offsets d_k = mu_k - mu_parent(k), or unit `directions` x bone length.
+
+    Args:
+        positions: (..., K, 3) joint positions of one pose.
+        parents: (K,) parent indices (root its own parent, so its offset is 0).
+        directions: optional (K, 3) or (..., K, 3) directions d-bar_k; normalised here.
+
+    Returns:
+        (..., K, 3).
+    """
+    par = np.asarray(parents, dtype=np.int64).reshape(-1)
+    d = positions - positions[..., par, :]
+    if directions is None:
+        return d
+    return normalize(directions) * _safe_norm(d, keepdims=True)

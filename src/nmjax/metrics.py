@@ -1,0 +1,264 @@
+"""Evaluation metrics: SC-score (Eq. 21), Chamfer distances for 4D tracking (Table 2) and M-CD
+(Eq. 22); DESIGN §9.
+
+The numerical kernels (`nearest_keypoint_counts`, `chamfer_distance`) are pure and jit-able; the
+front-ends (`SemanticConsistency`, `tracking_chamfer`, `motion_chamfer`) turn voxel grids into
+point sets with NumPy (their sizes vary per frame) and pad them to a few bucket sizes so that the
+compiled kernels are reused. Point sets of voxels are the occupied cells' coordinates on the
+`linspace(-1, 1, G)` grid (`nmjax.data.voxelize.voxel_points`).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from nmjax.data.voxelize import voxel_points
+
+MAX_SQ_DIST = 12.0  # squared diagonal of the normalised cube [-1, 1]^3: the worst possible CD term
+TRACKING_SCALE = 1e4  # Table 2 reports the Chamfer distance x 1e4
+
+
+# --- SC-score (Eq. 21) -------------------------------------------------------------------------
+
+
+def nearest_keypoint_counts(
+    keypoints: Array, gt_joints: Array, min_intensity: float = 0.2
+) -> tuple[Array, Array]:
+    """How often each keypoint is the nearest one to each ground-truth joint (Eq. 21's p_j(k)).
+
+    Keypoints with alpha < `min_intensity` are ignored; frames where every keypoint is ignored do
+    not count.
+
+    Args:
+        keypoints: (..., K, 4) detected keypoints, one set per frame.
+        gt_joints: (..., J, 3) ground-truth joints of the same frames (same normalisation).
+        min_intensity: alpha threshold.
+
+    Returns:
+        counts (J, K) float32 and the number of frames that counted (scalar).
+    """
+    k, j = keypoints.shape[-2], gt_joints.shape[-2]
+    kp = keypoints.reshape(-1, k, 4)
+    gt = gt_joints.reshape(-1, j, 3)
+    if kp.shape[0] != gt.shape[0]:
+        raise ValueError(
+            f"keypoints {keypoints.shape} and gt_joints {gt_joints.shape} must describe the same "
+            "frames (equal leading axes)"
+        )
+    valid = kp[..., 3] >= min_intensity  # (F, K)
+    d = jnp.sum(jnp.square(gt[:, :, None, :] - kp[:, None, :, :3]), axis=-1)  # (F, J, K)
+    d = jnp.where(valid[:, None, :], d, jnp.inf)
+    nearest = jax.nn.one_hot(jnp.argmin(d, axis=-1), k)  # (F, J, K)
+    used = jnp.any(valid, axis=-1)  # (F,)
+    counts = jnp.sum(nearest * used[:, None, None], axis=0)
+    return counts, jnp.sum(used).astype(jnp.float32)
+
+
+def sc_score_from_counts(counts: Array | np.ndarray, frames: float) -> float:
+    """Eq. 21: SC = mean over joints j of max_k p_j(k), with p_j(k) = counts[j, k] / frames."""
+    if frames <= 0:
+        raise ValueError(
+            "semantic consistency: no frame had a keypoint with alpha >= min_intensity; "
+            "lower min_intensity or check the detector's intensities"
+        )
+    return float(np.mean(np.max(np.asarray(counts), axis=-1)) / frames)
+
+
+def semantic_consistency(keypoints: Array, gt_joints: Array, min_intensity: float = 0.2) -> float:
+    """Eq. 21, the SC-score of one batch of frames (see `SemanticConsistency` for many batches).
+
+    Args:
+        keypoints: (F, K, 4) (any leading axes) detected keypoints.
+        gt_joints: (F, J, 3) ground-truth joints in the same normalised frame.
+        min_intensity: keypoints with alpha below it are ignored (DESIGN §9: 0.2).
+
+    Returns:
+        SC in [1/K, 1]; 1 when every joint always has the same nearest keypoint.
+    """
+    counts, frames = _counts_jit(jnp.asarray(keypoints), jnp.asarray(gt_joints), min_intensity)
+    return sc_score_from_counts(counts, float(frames))
+
+
+_counts_jit = jax.jit(nearest_keypoint_counts, static_argnums=2)
+
+
+class SemanticConsistency:
+    """Accumulates Eq. 21 over many batches: `update(kp, gt)` per batch, then `result()`."""
+
+    def __init__(self, min_intensity: float = 0.2):
+        self.min_intensity = min_intensity
+        self.counts: np.ndarray | None = None
+        self.frames = 0.0
+
+    def update(self, keypoints: Array, gt_joints: Array) -> None:
+        """Adds frames: keypoints (..., K, 4), gt_joints (..., J, 3) with equal leading axes."""
+        counts, frames = _counts_jit(
+            jnp.asarray(keypoints), jnp.asarray(gt_joints), self.min_intensity
+        )
+        counts = np.asarray(counts, dtype=np.float64)
+        if self.counts is not None and self.counts.shape != counts.shape:
+            raise ValueError(
+                f"SemanticConsistency: (J, K) changed from {self.counts.shape} to {counts.shape}"
+            )
+        self.counts = counts if self.counts is None else self.counts + counts
+        self.frames += float(frames)
+
+    def per_joint(self) -> np.ndarray:
+        """(J,) max_k p_j(k) of each ground-truth joint."""
+        if self.counts is None or self.frames <= 0:
+            raise ValueError("SemanticConsistency: no frame counted yet; call update() first")
+        return self.counts.max(axis=-1) / self.frames
+
+    def result(self) -> float:
+        """Eq. 21 over every frame seen so far."""
+        if self.counts is None:
+            raise ValueError("SemanticConsistency: no frame counted yet; call update() first")
+        return sc_score_from_counts(self.counts, self.frames)
+
+
+# --- Chamfer distances -------------------------------------------------------------------------
+
+
+def _nearest_sq_dist(a: Array, b: Array, b_mask: Array, chunk: int) -> Array:
+    """(N,) squared distance from each row of a (N, 3) to the nearest valid row of b (M, 3)."""
+    n = a.shape[0]
+    chunk = max(1, min(chunk, n))
+    pad = (-n) % chunk
+    blocks = jnp.pad(a, ((0, pad), (0, 0))).reshape(-1, chunk, 3)
+    b_sq = jnp.sum(jnp.square(b), axis=-1)
+
+    def block(x):  # (chunk, 3) -> (chunk,); a (chunk, M) matrix at a time, never (chunk, M, 3)
+        d = jnp.sum(jnp.square(x), axis=-1)[:, None] - 2.0 * x @ b.T + b_sq[None, :]
+        return jnp.maximum(jnp.min(jnp.where(b_mask[None, :], d, jnp.inf), axis=-1), 0.0)
+
+    return jax.lax.map(block, blocks).reshape(-1)[:n]
+
+
+def chamfer_distance(
+    a: Array,
+    b: Array,
+    a_mask: Array | None = None,
+    b_mask: Array | None = None,
+    *,
+    empty_value: float = float("nan"),
+    chunk: int = 2048,
+) -> Array:
+    """Symmetric Chamfer distance (Fan et al. 2017) between two point sets, squared distances:
+
+    CD(A, B) = mean_{a in A} min_{b in B} ||a - b||^2 + mean_{b in B} min_{a in A} ||a - b||^2.
+
+    Args:
+        a: (N, 3) points; b: (M, 3) points.
+        a_mask, b_mask: optional (N,), (M,) booleans marking the valid (non-padding) points.
+        empty_value: result when exactly one set is empty (both empty gives 0).
+        chunk: rows of `a` (and of `b`) compared at once; bounds memory to chunk x M floats.
+
+    Returns:
+        scalar.
+    """
+    a_mask = jnp.ones(a.shape[0], bool) if a_mask is None else a_mask
+    b_mask = jnp.ones(b.shape[0], bool) if b_mask is None else b_mask
+    na, nb = jnp.sum(a_mask), jnp.sum(b_mask)
+    if a.shape[0] == 0 or b.shape[0] == 0:  # static: nothing to compare
+        return jnp.asarray(0.0 if a.shape[0] == b.shape[0] else empty_value, jnp.float32)
+    da = _nearest_sq_dist(a, b, b_mask, chunk)
+    db = _nearest_sq_dist(b, a, a_mask, chunk)
+    ab = jnp.sum(jnp.where(a_mask, da, 0.0)) / jnp.maximum(na, 1)
+    ba = jnp.sum(jnp.where(b_mask, db, 0.0)) / jnp.maximum(nb, 1)
+    both, neither = (na > 0) & (nb > 0), (na == 0) & (nb == 0)
+    return jnp.where(both, ab + ba, jnp.where(neither, 0.0, empty_value))
+
+
+@functools.partial(jax.jit, static_argnames=("empty_value",))
+def _chamfer_padded(a, b, a_mask, b_mask, empty_value):
+    return chamfer_distance(a, b, a_mask, b_mask, empty_value=empty_value)
+
+
+def _padded(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pads (M, 3) to the next power of two (>= 64) rows with a validity mask."""
+    size = max(64, 1 << int(np.ceil(np.log2(max(len(points), 1)))))
+    out = np.zeros((size, 3), np.float32)
+    out[: len(points)] = points
+    return out, np.arange(size) < len(points)
+
+
+def point_chamfer(a: np.ndarray, b: np.ndarray, empty_value: float = float("nan")) -> float:
+    """`chamfer_distance` of two NumPy point sets of any size, padded to reuse compilations."""
+    (pa, ma), (pb, mb) = _padded(np.asarray(a)), _padded(np.asarray(b))
+    return float(_chamfer_padded(pa, pb, ma, mb, empty_value))
+
+
+def _check_sequences(v: np.ndarray, v_hat: np.ndarray, name: str) -> None:
+    if v.shape != v_hat.shape or v.ndim != 4:
+        raise ValueError(
+            f"{name}: expected two (T, G, G, G) voxel sequences of equal shape, "
+            f"got {v.shape} and {v_hat.shape}"
+        )
+
+
+def tracking_chamfer(
+    voxels: np.ndarray, recon: np.ndarray, threshold: float = 0.5, scale: float = TRACKING_SCALE
+) -> float:
+    """4D-tracking Chamfer distance of Table 2 (x1e4): mean over frames of CD(V_t, V-hat_t).
+
+    V_t are the occupied cells of the ground truth, V-hat_t those of the reconstruction
+    thresholded at `threshold` (cell coordinates on the linspace(-1, 1, G) grid). A frame whose
+    reconstruction is empty while the ground truth is not scores the worst possible value
+    (MAX_SQ_DIST = 12, the squared diagonal of the cube) instead of being skipped.
+
+    Args:
+        voxels: (T, G, G, G) ground-truth occupancy.
+        recon: (T, G, G, G) reconstructed probabilities (or occupancy).
+        threshold: occupancy threshold for both grids.
+        scale: multiplier of the reported value (Table 2 uses 1e4).
+
+    Returns:
+        scaled mean Chamfer distance over the T frames.
+    """
+    voxels, recon = np.asarray(voxels), np.asarray(recon)
+    _check_sequences(voxels, recon, "tracking_chamfer")
+    per_frame = [
+        point_chamfer(voxel_points(v, threshold), voxel_points(r, threshold), MAX_SQ_DIST)
+        for v, r in zip(voxels, recon, strict=True)
+    ]
+    return float(np.mean(per_frame)) * scale
+
+
+def motion_chamfer(voxels: np.ndarray, recon: np.ndarray, threshold: float = 0.5) -> float:
+    """Motion Chamfer Distance, Eq. 22: Chamfer distances of the frame-to-frame differences.
+
+    M-CD = 1/(T-1) sum_{t=2..T} CD(V+_t, V-hat+_t) + CD(V-_t, V-hat-_t), where V+_t (V-_t) are the
+    cells that become occupied (empty) between frames t-1 and t, after thresholding both
+    sequences at `threshold`. Both sets empty (no motion on either side) counts 0; exactly one
+    empty counts MAX_SQ_DIST = 12 (the worst possible value), so missing motion is penalised.
+    Unscaled.
+
+    Args:
+        voxels: (T, G, G, G) ground-truth sequence, T >= 2.
+        recon: (T, G, G, G) generated / interpolated sequence.
+        threshold: occupancy threshold.
+
+    Returns:
+        M-CD (a float).
+    """
+    voxels, recon = np.asarray(voxels), np.asarray(recon)
+    _check_sequences(voxels, recon, "motion_chamfer")
+    if voxels.shape[0] < 2:
+        raise ValueError(f"motion_chamfer needs at least 2 frames, got {voxels.shape[0]}")
+    occ, occ_hat = voxels >= threshold, recon >= threshold
+    total = 0.0
+    for t in range(1, occ.shape[0]):  # NumPy front-end: point sets differ in size per frame
+        for sign in (1, -1):
+            gained = occ[t] & ~occ[t - 1] if sign > 0 else occ[t - 1] & ~occ[t]
+            gained_hat = occ_hat[t] & ~occ_hat[t - 1] if sign > 0 else occ_hat[t - 1] & ~occ_hat[t]
+            total += point_chamfer(
+                voxel_points(gained.astype(np.float32)),
+                voxel_points(gained_hat.astype(np.float32)),
+                MAX_SQ_DIST,
+            )
+    return total / (occ.shape[0] - 1)

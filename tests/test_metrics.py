@@ -1,0 +1,115 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from nmjax import metrics
+
+SETTINGS = settings(max_examples=10, deadline=None)
+
+
+def np_chamfer(a, b):
+    d = ((a[:, None] - b[None]) ** 2).sum(-1)
+    return d.min(1).mean() + d.min(0).mean()
+
+
+def test_semantic_consistency_perfect_and_accumulated():
+    rng = np.random.default_rng(0)
+    gt = rng.uniform(-1, 1, (6, 5, 3)).astype(np.float32)
+    kp = np.concatenate([gt, np.ones((6, 5, 1), np.float32)], -1)
+    assert metrics.semantic_consistency(kp, gt) == pytest.approx(1.0)
+    # A permutation of the keypoints is still perfectly consistent.
+    assert metrics.semantic_consistency(kp[:, ::-1], gt) == pytest.approx(1.0)
+    # Joint 0's nearest keypoint alternates between two keypoints over 4 frames: p = 1/2.
+    gt2 = np.zeros((4, 1, 3), np.float32)
+    kp2 = np.zeros((4, 2, 4), np.float32)
+    kp2[..., 3] = 1
+    kp2[:, 0, 0] = [0.1, 0.5, 0.1, 0.5]
+    kp2[:, 1, 0] = [0.5, 0.1, 0.5, 0.1]
+    assert metrics.semantic_consistency(kp2, gt2) == pytest.approx(0.5)
+    acc = metrics.SemanticConsistency()
+    acc.update(kp2[:2], gt2[:2])
+    acc.update(kp2[2:], gt2[2:])
+    assert acc.result() == pytest.approx(0.5)
+    np.testing.assert_allclose(acc.per_joint(), [0.5])
+
+
+def test_semantic_consistency_ignores_low_intensity():
+    gt = np.zeros((3, 1, 3), np.float32)
+    kp = np.array([[[0.0, 0, 0, 0.1], [0.9, 0, 0, 1.0]]] * 3, np.float32)
+    counts, frames = metrics.nearest_keypoint_counts(jnp.asarray(kp), jnp.asarray(gt), 0.2)
+    np.testing.assert_allclose(counts, [[0, 3]])  # the closer keypoint is too faint
+    assert float(frames) == 3
+    faint = kp.copy()
+    faint[..., 3] = 0.0
+    with pytest.raises(ValueError, match="min_intensity"):
+        metrics.semantic_consistency(faint, gt)
+    with pytest.raises(ValueError, match="same"):
+        metrics.semantic_consistency(kp, np.zeros((2, 1, 3)))
+
+
+@SETTINGS
+@given(
+    n=st.integers(1, 40), m=st.integers(1, 40), chunk=st.integers(1, 16), seed=st.integers(0, 99)
+)
+def test_chamfer_matches_numpy(n, m, chunk, seed):
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(n, 3)).astype(np.float32)
+    b = rng.normal(size=(m, 3)).astype(np.float32)
+    got = metrics.chamfer_distance(jnp.asarray(a), jnp.asarray(b), chunk=chunk)
+    np.testing.assert_allclose(got, np_chamfer(a, b), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(metrics.point_chamfer(a, b), np_chamfer(a, b), rtol=1e-4, atol=1e-5)
+
+
+def test_chamfer_masks_empty_and_jit():
+    a = jnp.array([[0.0, 0, 0], [1, 0, 0], [9, 9, 9]])
+    b = jnp.array([[0.0, 0, 1], [5, 5, 5]])
+    am, bm = jnp.array([True, True, False]), jnp.array([True, False])
+    # a' = {0, e_x}, b' = {e_z}: a->b: (1 + 2) / 2; b->a: 1.
+    f = jax.jit(metrics.chamfer_distance)
+    np.testing.assert_allclose(f(a, b, am, bm), 2.5, rtol=1e-6)
+    np.testing.assert_allclose(metrics.chamfer_distance(a, a), 0.0, atol=1e-6)
+    none = jnp.zeros(3, bool)
+    assert float(metrics.chamfer_distance(a, b, none, jnp.zeros(2, bool))) == 0.0
+    assert np.isnan(float(metrics.chamfer_distance(a, b, none, bm)))
+    assert float(metrics.chamfer_distance(a, b, none, bm, empty_value=12.0)) == 12.0
+    assert float(metrics.chamfer_distance(jnp.zeros((0, 3)), jnp.zeros((0, 3)))) == 0.0
+
+
+def test_tracking_chamfer():
+    g = 6
+    x = np.linspace(-1, 1, g)
+    v = np.zeros((2, g, g, g), np.float32)
+    v[:, 1, 1, 1] = 1
+    r = np.zeros_like(v)
+    r[0, 1, 1, 1] = 0.9  # exact after thresholding
+    r[1, 1, 1, 2] = 0.6  # one cell off: CD = 2 * (cell)^2
+    r[1, 4, 4, 4] = 0.4  # below threshold: ignored
+    cell = x[1] - x[0]
+    want = (0 + 2 * cell**2) / 2 * 1e4
+    assert metrics.tracking_chamfer(v, r) == pytest.approx(want, rel=1e-4)
+    # An empty reconstruction scores the worst value, not a skipped frame.
+    assert metrics.tracking_chamfer(v[:1], np.zeros_like(v[:1]), scale=1.0) == pytest.approx(12.0)
+    with pytest.raises(ValueError, match="equal shape"):
+        metrics.tracking_chamfer(v, r[:1])
+
+
+def test_motion_chamfer():
+    g = 8
+    x = np.linspace(-1, 1, g)
+    v = np.zeros((3, g, g, g), np.float32)
+    v[0, 2, 2, 2] = v[1, 3, 2, 2] = v[2, 4, 2, 2] = 1  # a cell moving along x
+    assert metrics.motion_chamfer(v, v) == pytest.approx(0.0)
+    # A reconstruction whose moving cell is shifted by one cell in y.
+    r = np.zeros_like(v)
+    r[0, 2, 3, 2] = r[1, 3, 3, 2] = r[2, 4, 3, 2] = 0.8
+    cell2 = (x[1] - x[0]) ** 2
+    # Each frame: V+ vs V-hat+ off by one cell (2 cell^2), same for V-; mean over 2 steps.
+    assert metrics.motion_chamfer(v, r) == pytest.approx(4 * cell2, rel=1e-4)
+    # Static reconstruction: every difference set empty on one side -> worst value per term.
+    static = np.repeat(v[:1], 3, axis=0)
+    assert metrics.motion_chamfer(v, static) == pytest.approx(2 * 12.0)
+    with pytest.raises(ValueError, match="2 frames"):
+        metrics.motion_chamfer(v[:1], v[:1])

@@ -58,7 +58,7 @@ def test_bodies_have_the_required_structure():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_bodies_are_about_unit_size(name):
-    extent = np.ptp(synthetic.rest_mesh(name).vertices, axis=0).max()
+    extent = np.ptp(synthetic.rest_mesh(synthetic.get_body(name)).vertices, axis=0).max()
     assert 0.5 < extent < 1.6
 
 
@@ -143,10 +143,9 @@ def test_every_joint_lies_within_the_sampled_body(name):
 def test_samples_lie_on_the_surface_area_uniformly(name):
     body = synthetic.get_body(name)
     positions, rotations = synthetic.pose(body, np.zeros((1, len(body.dofs))), np.zeros((1, 3)))
-    points = synthetic.sample_surface(name, positions, rotations, 20000, np.random.default_rng(0))[
-        0
-    ]
-    mesh = synthetic.rest_mesh(name)
+    rng = np.random.default_rng(0)
+    points = synthetic.sample_surface(body, positions, rotations, 20000, rng)[0]
+    mesh = synthetic.rest_mesh(body)
     _, distance, _ = trimesh.proximity.closest_point(mesh, points[:2000])
     assert distance.max() < 1e-5
     # Same distribution as trimesh's own area-weighted sampler: compare slab histograms.

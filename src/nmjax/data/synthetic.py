@@ -710,7 +710,7 @@ def sample_motion(
     shared = dict(zip(groups, _smooth_signals(rng, len(groups), frames, body.period), strict=True))
     coupling = np.array([d.coupling if d.group else 0.0 for _, d in dofs])[:, None]
     group_signal = np.stack([shared[d.group] if d.group else np.zeros(frames) for _, d in dofs])
-    mixed = coupling * group_signal + (1.0 - np.abs(coupling)) * own.reshape(-1, frames)
+    mixed = coupling * group_signal + (1.0 - np.abs(coupling)) * own
     amplitude = rng.uniform(0.5, 1.0, size=(len(dofs), 1))
     centre = rng.uniform(-1.0, 1.0, size=(len(dofs), 1)) * (1.0 - amplitude)
     limits = body.limits
@@ -723,7 +723,7 @@ def sample_motion(
     heading = root_rotation[:, :, 0] * np.array([1.0, 1.0, 0.0])  # local x, made horizontal
     heading /= np.maximum(np.linalg.norm(heading, axis=-1, keepdims=True), 1e-9)
     drift = np.cumsum(speed * heading, axis=0) - speed * heading[:1]
-    return angles.reshape(frames, len(dofs)), wander - wander[:1] + drift
+    return angles, wander - wander[:1] + drift
 
 
 def _axis_angle(axis: Sequence[float], angle: np.ndarray) -> np.ndarray:
@@ -779,15 +779,10 @@ def pose(
     for j, joint in enumerate(body.joints):
         cols = angles[:, start : start + len(joint.dofs)]
         start += len(joint.dofs)
-        slide = sum(
-            (
-                cols[:, c, None] * np.asarray(d.axis)
-                for c, d in enumerate(joint.dofs)
-                if d.kind == "slide"
-            ),
-            np.zeros((frames, 3)),
-        )
-        local_position = np.asarray(joint.offset) + slide @ _euler(joint.rest).T
+        slide_axes = np.array(
+            [d.axis if d.kind == "slide" else (0.0, 0.0, 0.0) for d in joint.dofs]
+        ).reshape(-1, 3)
+        local_position = np.asarray(joint.offset) + cols @ slide_axes @ _euler(joint.rest).T
         if joint.parent is None:
             parent_rotation, parent_position = np.eye(3), np.asarray(root_translation, np.float64)
         else:
@@ -800,9 +795,8 @@ def pose(
 
 
 @functools.cache
-def body_triangles(name: str) -> tuple[np.ndarray, np.ndarray]:
+def body_triangles(body: Body) -> tuple[np.ndarray, np.ndarray]:
     """Triangles of every link in its joint's frame: (F, 3, 3) corners and (F,) joint index."""
-    body = get_body(name)
     triangles, owner = [], []
     for j, joint in enumerate(body.joints):
         for link in joint.links:
@@ -812,17 +806,16 @@ def body_triangles(name: str) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(triangles), np.concatenate(owner)
 
 
-def rest_mesh(name: str) -> trimesh.Trimesh:
-    """The body's surface (all links, not merged) in the rest pose, for tests and pictures."""
-    body = get_body(name)
+def rest_mesh(body: Body) -> trimesh.Trimesh:
+    """The body's surface (all links, not merged) with every angle zero, for tests and pictures."""
     positions, rotations = pose(body, np.zeros((1, len(body.dofs))), np.zeros((1, 3)))
-    triangles, owner = body_triangles(name)
+    triangles, owner = body_triangles(body)
     world = np.einsum("fij,fcj->fci", rotations[0, owner], triangles) + positions[0, owner, None]
     return trimesh.Trimesh(**trimesh.triangles.to_kwargs(world))
 
 
 def sample_surface(
-    name: str,
+    body: Body,
     positions: np.ndarray,
     rotations: np.ndarray,
     points: int,
@@ -836,7 +829,7 @@ def sample_surface(
     the point is carried by its joint's transform. Frames go in chunks to bound memory.
 
     Args:
-      name: synthetic dataset name (selects the body).
+      body: the body.
       positions: (T, J, 3) joint positions from `pose`.
       rotations: (T, J, 3, 3) joint rotations from `pose`.
       points: N, samples per frame.
@@ -846,7 +839,7 @@ def sample_surface(
     Returns:
       (T, N, 3) float32 points.
     """
-    triangles, owner = body_triangles(name)
+    triangles, owner = body_triangles(body)
     areas = np.linalg.norm(
         np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0]), axis=-1
     )
@@ -892,7 +885,7 @@ def simulate(
     rng = np.random.default_rng(rng) if isinstance(rng, int) else rng
     angles, root = sample_motion(body, frames, rng)
     positions, rotations = pose(body, angles, root)
-    vertices = sample_surface(name, positions, rotations, points, rng)
+    vertices = sample_surface(body, positions, rotations, points, rng)
     return SyntheticSequence(
         vertices, positions.astype(np.float32), angles.astype(np.float32), root.astype(np.float32)
     )

@@ -1,0 +1,317 @@
+"""Dynamics module (paper Sec. 3-4, appendix Fig. 10-11; DESIGN section 8).
+
+A variational RNN over keypoint trajectories x_{1:T} (B,T,K,4). At every step the posterior
+q(z_t | h_t, x_t) and the prior p(z_t | h_t) are diagonal Gaussians; a decoder turns (h_t, z_t)
+into the reconstruction x_hat_t; a GRU consumes [x_hat_t, z_t] to produce h_{t+1}.
+
+Two decoders share the cell:
+
+- "nm" (Neural Marionette): a global pose decoder gives the root position and the intensities
+  (Eq. 18), a rotation decoder gives one local rotation per joint in the 6D representation
+  (Eq. 19), and forward kinematics along the extracted skeleton (Eq. 2) turns them into joint
+  positions. Offsets are fixed random unit directions (drawn once at initialisation, never trained)
+  scaled by bone lengths measured on the observed sequence (Eq. 20).
+- "vrnn" (baseline of Chung et al. / Minderer et al.): the decoder regresses the 4K keypoint values
+  directly.
+
+The recurrence runs under `jax.lax.scan` with one key per step split up front; the S posterior
+samples of the best-of-S training rule are vmapped.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from nmjax import geometry
+from nmjax.config import DynamicsConfig
+
+STD_EPS = 1e-4  # std = softplus(raw) + 1e-4 (Fig. 11)
+MODELS = ("nm", "vrnn")
+IDENTITY_6D = np.array([1, 0, 0, 0, 1, 0], np.float32)  # first two columns (= rows) of I
+
+
+class Buffer(nnx.Variable):
+    """A non-trainable array that belongs to the model state (saved, never optimised)."""
+
+
+class StepOutput(NamedTuple):
+    """Per-step outputs of the cell; a scan stacks them along a time axis after the batch axes."""
+
+    keypoints: jax.Array  # (B,K,4) decoded x_hat_t
+    rotations: jax.Array  # (B,K,3,3) local rotations (identity for the vrnn baseline)
+    z: jax.Array  # (B,D_z) the latent that was decoded
+    mean_q: jax.Array  # (B,D_z) posterior mean (equal to the prior when no x_t is seen)
+    std_q: jax.Array  # (B,D_z)
+    mean_p: jax.Array  # (B,D_z) prior mean
+    std_p: jax.Array  # (B,D_z)
+
+
+def bone_lengths(keypoints: jax.Array, parents: tuple[int, ...] | np.ndarray) -> jax.Array:
+    """Bone length of every joint measured on an observed sequence (Eq. 20, released form).
+
+    The paper prints the length in the first frame; the released code takes the median over time
+    of the keypoint-parent distance, which is what this computes.
+
+    Args:
+      keypoints: (..., T, K, 4) or (..., T, K, 3) observed keypoints; only xyz is used.
+      parents: (K,) parent index of each joint; the root is its own parent (length 0).
+
+    Returns:
+      (..., K) lengths ||mu_k - mu_parent(k)||, median over T.
+    """
+    mu = keypoints[..., :3]
+    parent_mu = jnp.take(mu, jnp.asarray(parents), axis=-2)
+    dist = jnp.linalg.norm(mu - parent_mu, axis=-1)  # (..., T, K)
+    return jnp.median(dist, axis=-2)
+
+
+def gaussian_head(raw: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Splits (..., 2 D) into a mean and a std = softplus + 1e-4 (Fig. 11)."""
+    mean, raw_std = jnp.split(raw, 2, axis=-1)
+    return mean, jax.nn.softplus(raw_std) + STD_EPS
+
+
+class MLP(nnx.Module):
+    """Linear -> ReLU -> Linear, the shape of every head of Fig. 11."""
+
+    def __init__(self, in_features: int, hidden: int, out_features: int, *, rngs: nnx.Rngs):
+        self.hidden = nnx.Linear(in_features, hidden, rngs=rngs)
+        self.out = nnx.Linear(hidden, out_features, rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.out(jax.nn.relu(self.hidden(x)))
+
+
+class Dynamics(nnx.Module):
+    """The VRNN cell with the Neural Marionette ("nm") or positional ("vrnn") decoder.
+
+    Args:
+      cfg: sizes (D_z, D_h, mlp width), decoder kind and S.
+      parents: (K,) parent of every keypoint of the extracted skeleton; root is its own parent.
+      order: (K,) topological order, root first (skeleton.json "order").
+      rngs: parameter and offset-direction initialisation; `rngs.params()` draws the offset
+        directions, so a seed fixes them.
+    """
+
+    def __init__(
+        self,
+        cfg: DynamicsConfig,
+        parents: tuple[int, ...] | list[int] | np.ndarray,
+        order: tuple[int, ...] | list[int] | np.ndarray,
+        *,
+        rngs: nnx.Rngs,
+    ):
+        if cfg.model not in MODELS:
+            raise ValueError(f"DynamicsConfig.model={cfg.model!r}; valid models: {MODELS}")
+        parents = tuple(int(p) for p in parents)
+        order = tuple(int(k) for k in order)
+        num_keypoints = len(parents)
+        if sorted(order) != list(range(num_keypoints)) or parents[order[0]] != order[0]:
+            raise ValueError(
+                f"skeleton order {order} must be a permutation of 0..{num_keypoints - 1} "
+                "starting at the root (the joint that is its own parent)"
+            )
+        self.kind = cfg.model
+        self.parents = parents
+        self.order = order
+        self.num_keypoints = num_keypoints
+        self.latent = cfg.latent
+        self.samples = cfg.posterior_samples
+        k, dz, dh, m = num_keypoints, cfg.latent, cfg.hidden, cfg.mlp
+        x_dim = 4 * k
+
+        self.posterior = MLP(dh + x_dim, m, 2 * dz, rngs=rngs)
+        self.prior = MLP(dh, m, 2 * dz, rngs=rngs)
+        if self.kind == "nm":
+            self.global_decoder = MLP(dh + dz, m, 3 + k, rngs=rngs)
+            self.rotation_decoder = MLP(dh + dz, m, 6 * k, rngs=rngs)
+            directions = jax.random.normal(rngs.params(), (k, 3))
+            directions = directions / jnp.linalg.norm(directions, axis=-1, keepdims=True)
+            self.directions = Buffer(directions)  # \bar d_k of Eq. 20, fixed at initialisation
+        else:
+            self.keypoint_decoder = MLP(dh + dz, m, x_dim, rngs=rngs)
+        self.rnn = nnx.GRUCell(x_dim + dz, dh, rngs=rngs)
+        self.initial_hidden = nnx.Param(jnp.zeros((dh,)))
+
+    # -- pieces of one step ------------------------------------------------------------------
+
+    def offsets(self, lengths: jax.Array) -> jax.Array:
+        """Offsets d_k = \\bar d_k ||bone_k|| (Eq. 20): (..., K) lengths -> (..., K, 3)."""
+        return self.directions[...] * lengths[..., None]
+
+    def decode(self, h: jax.Array, z: jax.Array, lengths: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """x_hat = phi(z, h) (Eqs. 3, 18, 19 and 2).
+
+        Args:
+          h: (..., D_h) hidden state.
+          z: (..., D_z) latent.
+          lengths: (..., K) bone lengths of the observed sequence (unused by "vrnn").
+
+        Returns:
+          keypoints (..., K, 4) and local rotations (..., K, 3, 3) (identity for "vrnn").
+        """
+        hz = jnp.concatenate([h, z], axis=-1)
+        k = self.num_keypoints
+        batch = hz.shape[:-1]
+        if self.kind == "vrnn":
+            keypoints = self.keypoint_decoder(hz).reshape(*batch, k, 4)
+            rotations = jnp.broadcast_to(jnp.eye(3), (*batch, k, 3, 3))
+            return keypoints, rotations
+        y = jnp.tanh(self.global_decoder(hz))  # (..., 3 + K)
+        root, alpha = y[..., :3], (y[..., 3:] + 1.0) / 2.0
+        # The decoder predicts the 6D vector relative to the identity's [1,0,0, 0,1,0], so an
+        # all-zero output (e.g. every ReLU unit inactive) is the identity instead of a 0/0.
+        rot6d = self.rotation_decoder(hz).reshape(*batch, k, 6) + IDENTITY_6D
+        rotations = geometry.rotation_6d_to_matrix(rot6d)
+        offsets = jnp.broadcast_to(self.offsets(lengths), (*batch, k, 3))
+        # FK on one flattened batch axis: with several leading axes, XLA:CPU (jax 0.10.2) fails
+        # to compile the gradient of geometry.forward_kinematics's scatters (hlo verifier error).
+        mu = geometry.forward_kinematics(
+            root.reshape(-1, 3),
+            rotations.reshape(-1, k, 3, 3),
+            offsets.reshape(-1, k, 3),
+            self.parents,
+            self.order,
+        ).reshape(*batch, k, 3)
+        return jnp.concatenate([mu, alpha[..., None]], axis=-1), rotations
+
+    def prior_dist(self, h: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """p(z_t | h_t): (..., D_h) -> mean, std (..., D_z)."""
+        return gaussian_head(self.prior(h))
+
+    def posterior_dist(self, h: jax.Array, x: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """q(z_t | h_t, x_t): h (..., D_h), x (..., K, 4) -> mean, std (..., D_z)."""
+        x_flat = x.reshape(*x.shape[:-2], -1)
+        return gaussian_head(self.posterior(jnp.concatenate([h, x_flat], axis=-1)))
+
+    def recur(self, h: jax.Array, x_hat: jax.Array, z: jax.Array) -> jax.Array:
+        """h_{t+1} = GRU(h_t, [x_hat_t, z_t])."""
+        x_flat = x_hat.reshape(*x_hat.shape[:-2], -1)
+        h_next, _ = self.rnn(h, jnp.concatenate([x_flat, z], axis=-1))
+        return h_next
+
+    def posterior_step(
+        self, h: jax.Array, x: jax.Array, lengths: jax.Array, key: jax.Array, samples: int
+    ) -> tuple[jax.Array, StepOutput]:
+        """One observed step with best-of-S posterior sampling.
+
+        Draws `samples` latents from q(z_t | h_t, x_t) (vmapped), decodes each and keeps, per
+        batch element, the one whose decoding has the smallest squared error to x_t.
+
+        Args:
+          h: (B, D_h); x: (B, K, 4); lengths: (B, K); key: PRNG key of this step.
+          samples: S (static).
+
+        Returns:
+          h_{t+1} (B, D_h) and the StepOutput of the kept sample.
+        """
+        mean_p, std_p = self.prior_dist(h)
+        mean_q, std_q = self.posterior_dist(h, x)
+        eps = jax.random.normal(key, (samples, *mean_q.shape))
+        z_all = mean_q + std_q * eps  # (S, B, D_z)
+        x_all, rot_all = self.decode(
+            jnp.broadcast_to(h, (samples, *h.shape)),
+            z_all,
+            jnp.broadcast_to(lengths, (samples, *lengths.shape)),
+        )  # the S samples ride along as a leading batch axis
+        error = jnp.sum((x_all - x) ** 2, axis=(-2, -1))  # (S, B)
+        best = jnp.argmin(error, axis=0)  # (B,)
+        pick = jax.vmap(lambda a, i: a[i], in_axes=(1, 0))  # (S, B, ...) -> (B, ...)
+        z, x_hat, rotations = pick(z_all, best), pick(x_all, best), pick(rot_all, best)
+        out = StepOutput(x_hat, rotations, z, mean_q, std_q, mean_p, std_p)
+        return self.recur(h, x_hat, z), out
+
+    def prior_step(
+        self, h: jax.Array, lengths: jax.Array, key: jax.Array
+    ) -> tuple[jax.Array, StepOutput]:
+        """One unobserved step: z_t ~ p(z_t | h_t), decode, recur. Shapes as `posterior_step`."""
+        mean_p, std_p = self.prior_dist(h)
+        z = mean_p + std_p * jax.random.normal(key, mean_p.shape)
+        x_hat, rotations = self.decode(h, z, lengths)
+        out = StepOutput(x_hat, rotations, z, mean_p, std_p, mean_p, std_p)
+        return self.recur(h, x_hat, z), out
+
+    def initial_state(self, batch: int) -> jax.Array:
+        """The learned initial hidden state broadcast to (B, D_h)."""
+        return jnp.broadcast_to(self.initial_hidden[...], (batch, self.initial_hidden.shape[-1]))
+
+    # -- whole sequences ---------------------------------------------------------------------
+
+    def __call__(
+        self,
+        x: jax.Array,
+        key: jax.Array,
+        samples: int | None = None,
+        lengths: jax.Array | None = None,
+    ) -> StepOutput:
+        """Runs the posterior over an observed sequence (training / reconstruction).
+
+        Args:
+          x: (B, T, K, 4) keypoint trajectories.
+          key: PRNG key; split into T per-step keys up front.
+          samples: S of the best-of-S rule; default the config's `posterior_samples`.
+          lengths: (B, K) bone lengths; default measured on `x` (Eq. 20).
+
+        Returns:
+          StepOutput whose fields have a time axis: keypoints (B,T,K,4), rotations (B,T,K,3,3),
+          z / means / stds (B,T,D_z).
+        """
+        samples = self.samples if samples is None else samples
+        if lengths is None:
+            lengths = bone_lengths(x, self.parents)
+        keys = jax.random.split(key, x.shape[1])
+
+        def step(h, inputs):
+            x_t, key_t = inputs
+            return self.posterior_step(h, x_t, lengths, key_t, samples)
+
+        _, outs = jax.lax.scan(step, self.initial_state(x.shape[0]), (jnp.swapaxes(x, 0, 1), keys))
+        return jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1), outs)
+
+    def reconstruct(
+        self, x: jax.Array, key: jax.Array, samples: int = 1
+    ) -> tuple[jax.Array, jax.Array]:
+        """Posterior reconstruction: (B,T,K,4) -> keypoints (B,T,K,4), rotations (B,T,K,3,3)."""
+        out = self(x, key, samples=samples)
+        return out.keypoints, out.rotations
+
+    def generate(
+        self, x_cond: jax.Array, num_frames: int, key: jax.Array, samples: int = 1
+    ) -> tuple[jax.Array, jax.Array]:
+        """Motion generation (Sec. 5): T_cond posterior steps, then `num_frames` prior samples.
+
+        Bone lengths are measured on the conditioning frames (Eq. 20), so every generated frame of
+        the "nm" model keeps them exactly.
+
+        Args:
+          x_cond: (B, T_cond, K, 4) observed keypoints.
+          num_frames: T_gen (static).
+          key: PRNG key.
+          samples: S of the best-of-S rule on the observed frames.
+
+        Returns:
+          keypoints (B, T_cond + T_gen, K, 4) and local rotations (B, T_cond + T_gen, K, 3, 3).
+        """
+        lengths = bone_lengths(x_cond, self.parents)
+        key_cond, key_gen = jax.random.split(key)
+        keys_cond = jax.random.split(key_cond, x_cond.shape[1])
+        keys_gen = jax.random.split(key_gen, num_frames)
+
+        def observed(h, inputs):
+            x_t, key_t = inputs
+            return self.posterior_step(h, x_t, lengths, key_t, samples)
+
+        def unobserved(h, key_t):
+            return self.prior_step(h, lengths, key_t)
+
+        h0 = self.initial_state(x_cond.shape[0])
+        h, cond = jax.lax.scan(observed, h0, (jnp.swapaxes(x_cond, 0, 1), keys_cond))
+        _, gen = jax.lax.scan(unobserved, h, keys_gen)
+        keypoints = jnp.concatenate([cond.keypoints, gen.keypoints], axis=0)
+        rotations = jnp.concatenate([cond.rotations, gen.rotations], axis=0)
+        return jnp.swapaxes(keypoints, 0, 1), jnp.swapaxes(rotations, 0, 1)

@@ -1,0 +1,196 @@
+"""Tests of nmjax.models.dynamics: shapes, FK decoder, fixed offsets, best-of-S, generation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from nmjax.config import DynamicsConfig
+from nmjax.models import dynamics
+from nmjax.models.dynamics import Buffer, Dynamics, bone_lengths
+
+PARENTS = (1, 1, 0, 1, 3)  # root 1; 1 -> 0 -> 2 and 1 -> 3 -> 4
+ORDER = (1, 0, 3, 2, 4)
+K = len(PARENTS)
+TINY = DynamicsConfig(latent=4, hidden=8, mlp=8, posterior_samples=3)
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula."""
+    axis = axis / np.linalg.norm(axis)
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
+
+
+def numpy_fk(root: np.ndarray, local: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Eq. 2 joint by joint: root (3,), local (K,3,3), offsets (K,3) -> (K,3)."""
+    glob, pos = np.zeros((K, 3, 3)), np.zeros((K, 3))
+    for k in ORDER:
+        p = PARENTS[k]
+        if p == k:
+            glob[k], pos[k] = local[k], root
+        else:
+            glob[k] = glob[p] @ local[k]
+            pos[k] = pos[p] + glob[k] @ offsets[k]
+    return pos
+
+
+def make_model(model: str = "nm", seed: int = 0, cfg: DynamicsConfig = TINY) -> Dynamics:
+    cfg = DynamicsConfig(**{**cfg.__dict__, "model": model})
+    return Dynamics(cfg, PARENTS, ORDER, rngs=nnx.Rngs(seed))
+
+
+def random_sequence(batch: int, frames: int, seed: int = 0) -> np.ndarray:
+    """(B,T,K,4) keypoints of the test tree under random rotations, alpha in (0,1)."""
+    rng = np.random.default_rng(seed)
+    offsets = rng.normal(size=(K, 3)) * 0.2
+    x = np.zeros((batch, frames, K, 4), np.float32)
+    for b in range(batch):
+        for t in range(frames):
+            local = np.stack([rotation_about(rng.normal(size=3), rng.uniform(0, 1)) for _ in ORDER])
+            x[b, t, :, :3] = numpy_fk(rng.uniform(-0.3, 0.3, 3), local, offsets)
+    x[..., 3] = rng.uniform(0.2, 0.9, size=(batch, frames, K))
+    return x
+
+
+@pytest.mark.parametrize("kind", ["nm", "vrnn"])
+def test_shapes(kind):
+    model = make_model(kind)
+    x = jnp.asarray(random_sequence(2, 5))
+    out = model(x, jax.random.key(0))
+    assert out.keypoints.shape == (2, 5, K, 4)
+    assert out.rotations.shape == (2, 5, K, 3, 3)
+    for field in (out.z, out.mean_q, out.std_q, out.mean_p, out.std_p):
+        assert field.shape == (2, 5, TINY.latent)
+    assert bool(jnp.all(out.std_q >= dynamics.STD_EPS)) and bool(jnp.all(out.std_p > 0))
+    keypoints, rotations = model.generate(x[:, :2], 4, jax.random.key(1))
+    assert keypoints.shape == (2, 6, K, 4) and rotations.shape == (2, 6, K, 3, 3)
+    recon, _ = model.reconstruct(x, jax.random.key(2))
+    assert recon.shape == x.shape
+    alpha = out.keypoints[..., 3]
+    if kind == "nm":
+        assert bool(jnp.all((alpha >= 0) & (alpha <= 1)))
+        np.testing.assert_allclose(
+            jnp.einsum("...ij,...kj->...ik", out.rotations, out.rotations),
+            np.broadcast_to(np.eye(3), out.rotations.shape),
+            atol=1e-5,
+        )
+    else:
+        np.testing.assert_array_equal(out.rotations, np.broadcast_to(np.eye(3), (2, 5, K, 3, 3)))
+
+
+def test_bone_lengths_is_median_of_parent_distances():
+    x = random_sequence(2, 7, seed=3)
+    expected = np.median(np.linalg.norm(x[..., :3] - x[..., PARENTS, :3], axis=-1), axis=1)
+    np.testing.assert_allclose(bone_lengths(jnp.asarray(x), PARENTS), expected, rtol=1e-6)
+    assert np.all(expected[:, 1] == 0)  # the root is its own parent
+
+
+def test_decoder_fk_with_identity_rotations():
+    """Zeroed decoder kernels: identity 6D rotations and a chosen root; FK must sum the offsets."""
+    model = make_model("nm")
+    root = np.array([0.1, -0.2, 0.3], np.float32)
+    alpha_raw = np.linspace(-0.5, 0.5, K).astype(np.float32)
+    g_out, r_out = model.global_decoder.out, model.rotation_decoder.out
+    g_out.kernel[...] = jnp.zeros_like(g_out.kernel[...])
+    g_out.bias[...] = jnp.asarray(np.arctanh(np.concatenate([root, alpha_raw])))
+    r_out.kernel[...] = jnp.zeros_like(r_out.kernel[...])
+    r_out.bias[...] = jnp.zeros_like(r_out.bias[...])  # zero output = identity (IDENTITY_6D)
+    lengths = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.5, (2, K)), jnp.float32)
+    h = jnp.ones((2, TINY.hidden))
+    z = jnp.ones((2, TINY.latent))
+    keypoints, rotations = model.decode(h, z, lengths)
+    np.testing.assert_allclose(rotations, np.broadcast_to(np.eye(3), (2, K, 3, 3)), atol=1e-6)
+    directions = np.asarray(model.directions[...])
+    for b in range(2):
+        offsets = directions * np.asarray(lengths[b])[:, None]
+        expected = np.zeros((K, 3))
+        for k in range(K):  # root + sum of the offsets on the path from the root
+            expected[k] = root
+            j = k
+            while PARENTS[j] != j:
+                expected[k] += offsets[j]
+                j = PARENTS[j]
+        np.testing.assert_allclose(keypoints[b, :, :3], expected, atol=1e-5)
+        np.testing.assert_allclose(keypoints[b, :, 3], (alpha_raw + 1) / 2, atol=1e-6)
+
+
+def test_decoder_matches_numpy_fk_for_random_rotations():
+    model = make_model("nm", seed=4)
+    h = jax.random.normal(jax.random.key(0), (1, TINY.hidden))
+    z = jax.random.normal(jax.random.key(1), (1, TINY.latent))
+    lengths = jnp.full((1, K), 0.3)
+    keypoints, rotations = model.decode(h, z, lengths)
+    hz = jnp.concatenate([h, z], -1)
+    root = np.tanh(np.asarray(model.global_decoder(hz)))[0, :3]
+    offsets = np.asarray(model.directions[...]) * 0.3
+    expected = numpy_fk(root, np.asarray(rotations[0], np.float64), offsets)
+    np.testing.assert_allclose(keypoints[0, :, :3], expected, atol=1e-5)
+
+
+def test_offset_directions_are_fixed_unit_buffers():
+    model = make_model("nm", seed=7)
+    directions = np.asarray(model.directions[...])
+    assert isinstance(model.directions, Buffer) and not isinstance(model.directions, nnx.Param)
+    np.testing.assert_allclose(np.linalg.norm(directions, axis=-1), 1.0, rtol=1e-6)
+    params = nnx.state(model, nnx.Param)
+    assert "directions" not in params and "directions" in nnx.state(model, Buffer)
+    np.testing.assert_array_equal(directions, make_model("nm", seed=7).directions[...])
+    assert not np.allclose(directions, make_model("nm", seed=8).directions[...])
+    # gradients never reach the directions
+    grads = nnx.grad(lambda m: jnp.sum(m(jnp.ones((1, 2, K, 4)), jax.random.key(0)).keypoints))(
+        model
+    )
+    assert "directions" not in grads
+
+
+def test_best_of_s_keeps_the_closest_sample():
+    model = make_model("nm", seed=1, cfg=DynamicsConfig(latent=4, hidden=8, mlp=8))
+    x = jnp.asarray(random_sequence(3, 1, seed=5)[:, 0])
+    h = jax.random.normal(jax.random.key(2), (3, 8))
+    lengths = jnp.full((3, K), 0.2)
+    key, samples = jax.random.key(9), 6
+    _, out = model.posterior_step(h, x, lengths, key, samples)
+    mean_q, std_q = model.posterior_dist(h, x)
+    z_all = mean_q + std_q * jax.random.normal(key, (samples, 3, 4))
+    errors = np.stack(
+        [np.sum((np.asarray(model.decode(h, z, lengths)[0]) - x) ** 2, (-2, -1)) for z in z_all]
+    )
+    best = errors.argmin(0)
+    np.testing.assert_allclose(out.z, np.asarray(z_all)[best, np.arange(3)], rtol=1e-6)
+    np.testing.assert_allclose(
+        np.sum((np.asarray(out.keypoints) - x) ** 2, (-2, -1)), errors.min(0), rtol=1e-5
+    )
+
+
+def test_generation_keeps_bone_lengths_and_is_finite():
+    model = make_model("nm", seed=2)
+    x = jnp.asarray(random_sequence(2, 4, seed=6))
+    keypoints, rotations = jax.jit(model.generate, static_argnums=1)(x, 8, jax.random.key(0))
+    assert bool(jnp.all(jnp.isfinite(keypoints))) and bool(jnp.all(jnp.isfinite(rotations)))
+    lengths = np.linalg.norm(keypoints[..., :3] - keypoints[..., PARENTS, :3], axis=-1)
+    expected = np.asarray(bone_lengths(x, PARENTS))[:, None, :]
+    np.testing.assert_allclose(lengths, np.broadcast_to(expected, lengths.shape), atol=1e-5)
+
+
+def test_gradients_are_finite_under_jit():
+    model = make_model("nm")
+    x = jnp.asarray(random_sequence(2, 3))
+
+    @nnx.jit
+    def grad(m):
+        return nnx.grad(lambda m: jnp.mean(m(x, jax.random.key(0)).keypoints ** 2))(m)
+
+    leaves = jax.tree.leaves(grad(model))
+    assert leaves and all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
+    assert any(float(jnp.abs(g).sum()) > 0 for g in leaves)
+
+
+def test_bad_configuration_is_refused():
+    with pytest.raises(ValueError, match="valid models"):
+        make_model("lstm")
+    with pytest.raises(ValueError, match="permutation"):
+        Dynamics(TINY, PARENTS, (0, 1, 2, 3, 4), rngs=nnx.Rngs(0))

@@ -1,0 +1,230 @@
+"""Tests of nmjax.train.dyn on a fake phase-1 run (a known tree moved by smooth rotations)."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from nmjax import io
+from nmjax.config import dyn_preset
+from nmjax.models.dynamics import bone_lengths
+from nmjax.train import common, dyn
+
+PARENTS = (0, 0, 1, 2, 1)  # root 0; chain 0 -> 1 -> 2 -> 3 and a branch 1 -> 4
+ORDER = (0, 1, 2, 3, 4)
+K = len(PARENTS)
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues' formula."""
+    axis = axis / np.linalg.norm(axis)
+    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
+
+
+def smooth_motion(frames: int, rng: np.random.Generator, offsets: np.ndarray) -> np.ndarray:
+    """(T,K,4) keypoints of the tree: sinusoidal joint angles about fixed axes (Eq. 2, NumPy)."""
+    axes = rng.normal(size=(K, 3))
+    amp, freq, phase = rng.uniform(0.3, 1.0, K), rng.uniform(0.1, 0.3, K), rng.uniform(0, 6, K)
+    out = np.zeros((frames, K, 4), np.float32)
+    for t in range(frames):
+        glob = np.zeros((K, 3, 3))
+        for k in ORDER:
+            local = rotation_about(axes[k], amp[k] * np.sin(freq[k] * t + phase[k]))
+            if PARENTS[k] == k:
+                glob[k], out[t, k, :3] = local, 0.1 * np.sin(0.05 * t)
+            else:
+                glob[k] = glob[PARENTS[k]] @ local
+                out[t, k, :3] = out[t, PARENTS[k], :3] + glob[k] @ offsets[k]
+    out[..., 3] = 0.8
+    return out
+
+
+def make_fake_run(path, seed: int = 0):
+    """A phase-1 run folder (contract C10) with skeleton.json and keypoints_{train,test}.npz."""
+    rng = np.random.default_rng(seed)
+    offsets = rng.normal(size=(K, 3))
+    offsets *= rng.uniform(0.15, 0.3, (K, 1)) / np.linalg.norm(offsets, axis=-1, keepdims=True)
+    path.mkdir(parents=True)
+    io.write_json(
+        path / "skeleton.json",
+        {"parents": list(PARENTS), "root": 0, "order": list(ORDER), "depth": 3},
+    )
+    for split, lengths in (("train", (30, 25, 4)), ("test", (16, 12))):
+        seqs = {f"{split}{i}": smooth_motion(n, rng, offsets) for i, n in enumerate(lengths)}
+        io.save_npz(path / f"keypoints_{split}.npz", **seqs)
+    return path
+
+
+def tiny_cfg(skel_run, run, **overrides):
+    cfg = dyn_preset("synth-arm", "tiny")
+    return dataclasses.replace(cfg, skel_run=str(skel_run), run=str(run), **overrides)
+
+
+@pytest.fixture(scope="module")
+def fake_run(tmp_path_factory):
+    return make_fake_run(tmp_path_factory.mktemp("phase1") / "skel-synth-arm-20260101-000000")
+
+
+def test_missing_inputs_name_the_command_to_run(tmp_path):
+    with pytest.raises(FileNotFoundError, match="make train-skel DATA=synth-arm"):
+        dyn.find_skel_run("synth-arm", runs_root=tmp_path)
+    run = tmp_path / "skel-synth-arm-1"
+    run.mkdir()
+    assert dyn.find_skel_run("synth-arm", runs_root=tmp_path) == run
+    with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax extract-skeleton --run {run}")):
+        dyn.read_skeleton(run)
+    io.write_json(run / "skeleton.json", {"parents": [1, 0], "order": [0, 1]})
+    with pytest.raises(ValueError, match="not a tree"):
+        dyn.read_skeleton(run)
+
+
+def test_main_reports_missing_phase1_run(tmp_path, capsys):
+    rc = dyn.main(["--data", "synth-arm", "--skel-run", str(tmp_path / "nope"), "--preset", "tiny"])
+    assert rc == 1
+    assert "make train-skel DATA=synth-arm" in capsys.readouterr().out
+
+
+def test_crops_are_contiguous_windows_of_one_sequence(fake_run):
+    traj = dyn.load_trajectories(fake_run, "train")
+    poses, starts = dyn.crop_table(traj, 6)
+    # valid starts: 30-6+1 + 25-6+1 + 1 (the 4-frame sequence padded to 6)
+    assert len(starts) == 25 + 20 + 1 and poses.shape == (30 + 25 + 6, K, 4)
+    crops = np.asarray(
+        dyn.sample_crops(jnp.asarray(poses), jnp.asarray(starts), jax.random.key(0), 64, 6)
+    )
+    windows = {
+        name: np.lib.stride_tricks.sliding_window_view(x, 6, axis=0).transpose(0, 3, 1, 2)
+        for name, x in traj.items()
+        if len(x) >= 6
+    }
+    short = traj["train2"]
+    padded = np.concatenate([short, np.repeat(short[-1:], 2, axis=0)])
+    for crop in crops:
+        found = any(np.any(np.all(w == crop, axis=(1, 2, 3))) for w in windows.values())
+        assert found or np.array_equal(crop, padded)
+
+
+def jaxpr_stats(jaxpr) -> tuple[int, list[int]]:
+    """(number of equations, counting nested jaxprs; lengths of all scans) of a jaxpr."""
+    jaxpr = getattr(jaxpr, "jaxpr", jaxpr)
+    count, scans = 0, []
+    for eqn in jaxpr.eqns:
+        count += 1
+        if eqn.primitive.name == "scan":
+            scans.append(eqn.params["length"])
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple | list) else (value,):
+                if hasattr(sub, "eqns"):
+                    sub_count, sub_scans = jaxpr_stats(sub)
+                    count, scans = count + sub_count, scans + sub_scans
+    return count, scans
+
+
+def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path):
+    def trace(frames):
+        cfg = tiny_cfg(fake_run, tmp_path, frames=frames)
+        graphdef, state = dyn.build(cfg, PARENTS, ORDER)
+        poses, starts = dyn.crop_table(dyn.load_trajectories(fake_run, "train"), frames)
+        step = dyn.make_train_step(graphdef, cfg)
+        args = (state, jnp.asarray(poses), jnp.asarray(starts), jax.random.key(0), jnp.int32(0))
+        return jaxpr_stats(jax.make_jaxpr(step)(*args)), step, args
+
+    (count6, scans6), step, args = trace(6)
+    (count12, scans12), _, _ = trace(12)
+    assert 6 in scans6 and 12 in scans12  # forward (and backward) scans over time
+    assert 12 not in scans6 and 6 not in scans12
+    # No per-frame unrolling: doubling T does not add a single equation.
+    assert count6 == count12
+
+    state = args[0]
+    sizes = []
+    for i in range(3):
+        state, metrics = step(state, *args[1:4], jnp.int32(i))
+        sizes.append(dyn.train_step._cache_size())
+    assert sizes[0] == sizes[1] == sizes[2]  # compiled by the first call only
+    # A second model of the same configuration reuses the compiled step.
+    graphdef, fresh = dyn.build(tiny_cfg(fake_run, tmp_path, frames=6), PARENTS, ORDER)
+    dyn.make_train_step(graphdef, tiny_cfg(fake_run, tmp_path, frames=6))(
+        fresh, *args[1:4], jnp.int32(0)
+    )
+    assert dyn.train_step._cache_size() == sizes[0]
+    assert all(np.isfinite(float(v)) for v in metrics.values())
+
+
+def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
+    cfg = tiny_cfg(fake_run, tmp_path)
+    graphdef, state = dyn.build(cfg, PARENTS, ORDER)
+    poses, _ = dyn.crop_table(dyn.load_trajectories(fake_run, "train"), cfg.frames)
+    poses, starts = jnp.asarray(poses), jnp.array([3], jnp.int32)  # one crop: a fixed batch
+    step = dyn.make_train_step(graphdef, cfg)
+    recon = []
+    for i in range(60):
+        state, metrics = step(state, poses, starts, jax.random.key(2), jnp.int32(i))
+        recon.append(float(metrics["recon"]))  # Eq. 3 before this step's update
+    assert np.mean(recon[-5:]) < 0.5 * np.mean(recon[:5])
+
+
+def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
+    cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=2, val_every=2, log_every=1)
+    run_full, hist_full = dyn.train(cfg, progress=False)
+    half = dataclasses.replace(cfg, run=str(tmp_path / "half"), steps=2)
+    dyn.train(half, progress=False)
+    run_half, hist_half = dyn.train(dataclasses.replace(half, steps=4), resume=True, progress=False)
+    full_state = nnx.state(dyn.restore_model(run_full))
+    half_state = nnx.state(dyn.restore_model(run_half))
+    for a, b in zip(jax.tree.leaves(full_state), jax.tree.leaves(half_state), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert hist_half[-1] == hist_full[-1]
+    records = [r for r in common.read_metrics(run_half) if "train/loss" in r]
+    expected = [r for r in common.read_metrics(run_full) if "train/loss" in r]
+    assert [r["step"] for r in records] == [1, 2, 3, 4]
+    assert [r["train/loss"] for r in records] == [r["train/loss"] for r in expected]
+
+
+def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, tmp_path, capsys):
+    run = tmp_path / "cli"
+    argv = ["--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
+    assert dyn.main([*argv, "--steps", "10", "--run", str(run)]) == 0
+    assert "final validation" in capsys.readouterr().out
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["skel_run"] == str(fake_run) and saved["model"]["model"] == "nm"
+    records = common.read_metrics(run)
+    val = [r for r in records if "val/recon" in r]
+    assert [r["step"] for r in val] == [5, 10]
+    assert all(np.isfinite(v) for r in records for v in r.values())
+    assert sorted(p.name for p in (run / "figures").glob("*.png")) == [
+        "motion_0000005.png",
+        "motion_0000010.png",
+    ]
+    assert any((run / "tb").iterdir())
+    with pytest.raises(ValueError, match="--resume"):
+        dyn.train(dyn.parse_args([*argv, "--run", str(run)])[0], progress=False)
+
+    model = dyn.restore_model(run)
+    x = jnp.asarray(dyn.validation_crops(dyn.load_trajectories(fake_run, "test"), 6))
+    keypoints, rotations = model.generate(x[:, :2], 10, jax.random.key(0))
+    assert keypoints.shape == (x.shape[0], 12, K, 4) and rotations.shape[-2:] == (3, 3)
+    assert bool(jnp.all(jnp.isfinite(keypoints)))
+    lengths = np.linalg.norm(keypoints[..., :3] - keypoints[..., PARENTS, :3], axis=-1)
+    offsets = np.linalg.norm(model.offsets(bone_lengths(x[:, :2], PARENTS)), axis=-1)
+    np.testing.assert_allclose(lengths, np.broadcast_to(offsets[:, None], lengths.shape), atol=1e-5)
+
+
+def test_command_line_options_map_onto_the_config():
+    cfg, resume = dyn.parse_args(
+        ["--data", "synth-hand", "--model", "vrnn", "--preset", "cpu", "--steps", "7"]
+    )
+    assert not resume and cfg.model.model == "vrnn" and cfg.steps == 7
+    assert cfg.model.hidden == dyn_preset("synth-hand", "cpu").model.hidden
+    cfg, resume = dyn.parse_args(["--run", "r", "--resume", "--skel-run", "s"])
+    assert resume and cfg.run == "r" and cfg.skel_run == "s" and cfg.data == "synth-hand"
+    with pytest.raises(SystemExit):
+        dyn.parse_args(["--resume"])

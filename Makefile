@@ -39,5 +39,15 @@ prepare-data:
 train-skel:
 	$(NMJAX) train-skel $(SKEL_FLAGS) $(ARGS)
 
+# Phase 2 on a phase-1 run: SKEL_RUN defaults to the latest runs/skel-$(DATA)-*; MODEL=nm|vrnn.
+SKEL_RUN ?=
+MODEL ?= nm
+DYN_FLAGS := --data $(DATA) --model $(MODEL) --preset $(PRESET) \
+	$(if $(SKEL_RUN),--skel-run $(SKEL_RUN)) $(if $(STEPS),--steps $(STEPS)) \
+	$(if $(RUN),--run $(RUN)) $(if $(filter 1,$(RESUME)),--resume)
+
+train-dyn:
+	$(NMJAX) train-dyn $(DYN_FLAGS) $(ARGS)
+
 clean:
 	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

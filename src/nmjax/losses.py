@@ -107,29 +107,47 @@ def separation(keypoints: Array, sigma: float = 0.02, *, per_frame: bool = False
     return jnp.sum(e * off_diagonal, axis=(-2, -1)) / (k * (k - 1))
 
 
-def _volume_fitting_frame(occupancy: Array, mu: Array, points: Array) -> Array:
-    """One frame of Eq. 8: occupancy (P,), mu (K, 3), points (P, 3) -> scalar."""
-    # Nearest keypoint per cell via |p|^2 - 2 p.mu + |mu|^2 (a (P, K) matrix, never (P, K, 3)).
-    # The index is piecewise constant, so it is found without gradient and the exact squared
-    # distance to that keypoint is recomputed: only (P,) indices are kept for the backward pass.
+def _nearest_keypoint(sq: Array) -> Array:
+    """(K, P) -> (P,) index of the smallest row per column (first on ties).
+
+    A scan over the K rows with a running (min, index) pair: on XLA's CPU backend this is about
+    twice as fast as `jnp.argmin`, whose variadic reduction is slow.
+    """
+
+    def step(carry, row_and_k):
+        best, index = carry
+        row, k = row_and_k
+        better = row < best
+        return (jnp.where(better, row, best), jnp.where(better, k, index)), None
+
+    k = sq.shape[0]
+    init = (jnp.full(sq.shape[1:], jnp.inf, sq.dtype), jnp.zeros(sq.shape[1:], jnp.int32))
+    (_, index), _ = jax.lax.scan(step, init, (sq, jnp.arange(k, dtype=jnp.int32)))
+    return index
+
+
+def _volume_frame(occupancy: Array, mu: Array, points: Array) -> Array:
+    """One frame of Eq. 8: occupancy (P,), mu (K, 3), cells (P, 3) -> scalar."""
+    # Nearest keypoint of every cell from |mu|^2 - 2 mu.p (+ |p|^2, which does not change the
+    # argmin): a (K, P) matrix, never (K, P, 3). The index is piecewise constant, so it carries
+    # no gradient; the exact squared distance to that keypoint is then recomputed, and the
+    # backward pass keeps only the (P,) indices instead of the (K, P) matrix.
     fixed = jax.lax.stop_gradient(mu)
-    sq = (
-        jnp.sum(jnp.square(fixed), axis=-1)[None, :] - 2.0 * points @ fixed.T
-    )  # + |p|^2: same argmin
-    nearest = jnp.argmin(sq, axis=-1)  # (P,)
+    sq = jnp.sum(jnp.square(fixed), axis=-1)[:, None] - 2.0 * fixed @ points.T
+    nearest = _nearest_keypoint(sq)  # (P,)
     dist = jnp.sum(jnp.square(points - mu[nearest]), axis=-1)  # (P,)
-    count = jnp.sum(occupancy)
-    return jnp.sum(occupancy * dist) / jnp.maximum(count, 1.0)
+    return jnp.sum(occupancy * dist) / jnp.maximum(jnp.sum(occupancy), 1.0)
 
 
 def volume_fitting(voxels: Array, keypoints: Array) -> Array:
     """Eq. 8: one-directional Chamfer distance from the occupied voxels to the keypoints.
 
     For every occupied cell p (coordinates from `coord_grid(G)`), min_k ||p - mu_k||^2, averaged
-    over the occupied cells of the frame (0 for an empty frame). Memory stays O(G^3 K) per frame:
-    frames are processed one at a time with `lax.map` and the backward pass keeps only the
-    nearest-keypoint index of each cell. Where several keypoints tie for nearest, the gradient goes
-    to the first of them (any subgradient of the min is valid).
+    over the occupied cells of the frame (0 for an empty frame; the count is clamped to >= 1).
+    Memory stays O(G^3 K) for one frame at a time: frames go through `lax.map`, and the backward
+    pass keeps only each cell's nearest-keypoint index (G^3 integers per frame). Where several
+    keypoints tie for nearest, the whole gradient goes to the first of them (a valid
+    subgradient of the min).
 
     Args:
         voxels: (..., G, G, G) occupancy (weights; normally 0/1).
@@ -145,10 +163,10 @@ def volume_fitting(voxels: Array, keypoints: Array) -> Array:
             "their leading (batch, time) axes"
         )
     g = voxels.shape[-1]
-    points = coord_grid(g).reshape(-1, 3)
     occ = voxels.reshape(-1, g**3).astype(jnp.float32)
     mu = keypoints[..., :3].reshape(-1, keypoints.shape[-2], 3)
-    out = jax.lax.map(lambda args: _volume_fitting_frame(*args, points), (occ, mu))
+    points = coord_grid(g).reshape(-1, 3)
+    out = jax.lax.map(lambda args: _volume_frame(*args, points), (occ, mu))
     return out.reshape(lead)
 
 

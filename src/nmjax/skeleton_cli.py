@@ -133,7 +133,7 @@ def draw_skeleton(
     fig = plt.figure(figsize=(6, 6))
     ax = fig.add_subplot(projection="3d")
     if len(cells):
-        ax.scatter(*cells.T, s=1, c="0.6", alpha=0.08, depthshade=False)
+        ax.scatter(*cells.T, s=2, c="0.55", alpha=0.15, depthshade=False)
     for parent, child in skeleton.edges():
         faded = not (keep[parent] and keep[child])
         ax.plot(*mu[[parent, child]].T, c="tab:blue", lw=2, alpha=0.15 if faded else 0.9)

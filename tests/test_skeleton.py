@@ -162,6 +162,12 @@ def test_isolated_uniform_rows_are_still_attached():
     assert skeleton.root == 0 and skeleton.depth == 1
 
 
+def test_degenerate_affinities():
+    assert extract_skeleton(np.zeros((2, 5, 5))).parents == (0, 0, 0, 0, 0)
+    single = extract_skeleton(np.zeros((1, 1)))
+    assert single == Skeleton(parents=(0,), root=0, order=(0,), depth=0)
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     num=st.integers(3, 40),

@@ -141,10 +141,11 @@ def test_offset_directions_are_fixed_unit_buffers():
     np.testing.assert_array_equal(directions, make_model("nm", seed=7).directions[...])
     assert not np.allclose(directions, make_model("nm", seed=8).directions[...])
     # gradients never reach the directions
-    grads = nnx.grad(lambda m: jnp.sum(m(jnp.ones((1, 2, K, 4)), jax.random.key(0)).keypoints))(
+    lengths = jnp.full((1, K), 0.3)
+    grads = nnx.grad(lambda m: jnp.sum(m.decode(jnp.ones((1, 8)), jnp.ones((1, 4)), lengths)[0]))(
         model
     )
-    assert "directions" not in grads
+    assert "directions" not in grads and "rotation_decoder" in grads
 
 
 def test_best_of_s_keeps_the_closest_sample():
@@ -156,9 +157,10 @@ def test_best_of_s_keeps_the_closest_sample():
     _, out = model.posterior_step(h, x, lengths, key, samples)
     mean_q, std_q = model.posterior_dist(h, x)
     z_all = mean_q + std_q * jax.random.normal(key, (samples, 3, 4))
-    errors = np.stack(
-        [np.sum((np.asarray(model.decode(h, z, lengths)[0]) - x) ** 2, (-2, -1)) for z in z_all]
+    decoded, _ = model.decode(
+        jnp.broadcast_to(h, (samples, 3, 8)), z_all, jnp.full((samples, 3, K), 0.2)
     )
+    errors = np.sum((np.asarray(decoded) - np.asarray(x)) ** 2, axis=(-2, -1))  # (S, B)
     best = errors.argmin(0)
     np.testing.assert_allclose(out.z, np.asarray(z_all)[best, np.arange(3)], rtol=1e-6)
     np.testing.assert_allclose(

@@ -89,7 +89,7 @@ def test_missing_inputs_name_the_command_to_run(tmp_path):
 def test_main_reports_missing_phase1_run(tmp_path, capsys):
     rc = dyn.main(["--data", "synth-arm", "--skel-run", str(tmp_path / "nope"), "--preset", "tiny"])
     assert rc == 1
-    assert "make train-skel DATA=synth-arm" in capsys.readouterr().out
+    assert "make train-skel DATA=synth-arm" in capsys.readouterr().err
 
 
 def test_crops_are_contiguous_windows_of_one_sequence(fake_run):

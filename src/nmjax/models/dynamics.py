@@ -14,8 +14,11 @@ Two decoders share the cell:
 - "vrnn" (baseline of Chung et al. / Minderer et al.): the decoder regresses the 4K keypoint values
   directly.
 
-The recurrence runs under `jax.lax.scan` with one key per step split up front; the S posterior
-samples of the best-of-S training rule are vmapped.
+The recurrence runs under `jax.lax.scan` with one key per step split up front. The S posterior
+samples of the best-of-S training rule are decoded together as one extra leading axis (the
+computation `jax.vmap` would produce); forward kinematics always sees one flattened batch axis,
+because XLA:CPU of jax 0.10.2 fails to compile the gradient of `geometry.forward_kinematics`
+with several batch axes or under `vmap` (hlo verifier / RET_CHECK error on its scatters).
 """
 
 from __future__ import annotations
@@ -200,7 +203,7 @@ class Dynamics(nnx.Module):
     ) -> tuple[jax.Array, StepOutput]:
         """One observed step with best-of-S posterior sampling.
 
-        Draws `samples` latents from q(z_t | h_t, x_t) (vmapped), decodes each and keeps, per
+        Draws `samples` latents from q(z_t | h_t, x_t), decodes them together and keeps, per
         batch element, the one whose decoding has the smallest squared error to x_t.
 
         Args:

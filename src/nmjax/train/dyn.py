@@ -19,6 +19,7 @@ import argparse
 import dataclasses
 import functools
 import json
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -267,6 +268,7 @@ def evaluate(
     """Validation errors on crops x (V, T, K, 4), each next to a trivial baseline.
 
     - recon: posterior reconstruction (one sample, no best-of-S), frames 2..T;
+      recon_best: the same with the training rule, best of S samples per step;
       last_pose: predicting x_t by x_{t-1} on the same frames.
     - gen: prior rollout after T_cond = T/4 observed frames, error on the generated frames;
       gen_hold: holding the last observed pose over the same frames.
@@ -274,14 +276,16 @@ def evaluate(
     Returns:
       (metrics, generated keypoints (V, T, K, 4): T_cond observed then generated frames).
     """
-    key_rec, key_gen = jax.random.split(key)
+    key_rec, key_best, key_gen = jax.random.split(key, 3)
     recon, _ = model.reconstruct(x, key_rec, samples=1)
+    recon_best, _ = model.reconstruct(x, key_best, samples=model.samples)
     t_cond = condition_frames(x.shape[1])
     generated, _ = model.generate(x[:, :t_cond], x.shape[1] - t_cond, key_gen)
     future = x[:, t_cond:]
     hold = jnp.broadcast_to(x[:, t_cond - 1 : t_cond], future.shape)
     metrics = {
         "recon": frame_error(x[:, 1:], recon[:, 1:]),
+        "recon_best": frame_error(x[:, 1:], recon_best[:, 1:]),
         "last_pose": frame_error(x[:, 1:], x[:, :-1]),
         "gen": frame_error(future, generated[:, t_cond:]),
         "gen_hold": frame_error(future, hold),
@@ -327,7 +331,8 @@ def plot_motion(
             for k, p in enumerate(parents):
                 if p != k:
                     ax.plot(x[t, [p, k], 0], x[t, [p, k], 1], "-", color="tab:blue", lw=1.5)
-            ax.scatter(x[t, :, 0], x[t, :, 1], s=8, c=np.clip(x[t, :, 3], 0, 1), cmap="viridis")
+            alpha = np.clip(x[t, :, 3], 0, 1)  # intensity: dark = 0, yellow = 1
+            ax.scatter(x[t, :, 0], x[t, :, 1], s=8, c=alpha, cmap="viridis", vmin=0, vmax=1)
             ax.set_xlim(lo[0], hi[0])
             ax.set_ylim(lo[1], hi[1])
             ax.set_aspect("equal")
@@ -400,7 +405,8 @@ def train(
             condition_frames(cfg.frames),
         )
         pbar.write(
-            f"step {step}: val recon {scalars['val/recon']:.4g} (last pose "
+            f"step {step}: val recon {scalars['val/recon']:.4g} (best of S "
+            f"{scalars['val/recon_best']:.4g}; last pose "
             f"{scalars['val/last_pose']:.4g}), gen {scalars['val/gen']:.4g} (hold "
             f"{scalars['val/gen_hold']:.4g})"
         )
@@ -486,7 +492,7 @@ def main(argv: list[str]) -> int:
             cfg = dataclasses.replace(saved, steps=steps)
         run_dir, history = train(cfg, resume=resume)
     except (FileNotFoundError, ValueError) as err:
-        print(f"nmjax train-dyn: {err}")
+        print(f"nmjax train-dyn: {err}", file=sys.stderr)
         return 1
     last = history[-1] if history else {}
     print(f"run folder: {run_dir}; final validation: {json.dumps(last)}")

@@ -1,0 +1,157 @@
+"""Phase 2 on a synthetic body, with learning curves written to experiments/results/.
+
+Uses a phase-1 run when one is given (--skel-run, contract C10). Without one it builds an *oracle*
+stand-in: the generator's ground-truth joints (normalised per sequence with the point cloud's
+bounding box, alpha = 1) and its true parent tree, written in the C10 layout. The oracle measures
+the dynamics module alone; the result file says which input was used.
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm --steps 2000
+
+Writes experiments/results/train_dyn_<data>.json (configuration, final validation, steps/s,
+curves) and .png (training loss; validation reconstruction against "repeat the last pose";
+generation against "hold the last observed pose").
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from collections import deque
+from pathlib import Path
+
+import numpy as np
+
+from nmjax import io
+from nmjax.config import dyn_preset
+from nmjax.data import synthetic
+from nmjax.data.voxelize import normalize_sequence
+from nmjax.train import common, dyn
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def topological_order(parents: list[int]) -> list[int]:
+    """Breadth-first order from the root (the joint that is its own parent)."""
+    root = next(k for k, p in enumerate(parents) if p == k)
+    order, queue = [], deque([root])
+    while queue:
+        k = queue.popleft()
+        order.append(k)
+        queue.extend(j for j, p in enumerate(parents) if p == k and j != k)
+    return order
+
+
+def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
+    """A C10-layout folder from ground-truth joints of `sequences` generated sequences."""
+    body = synthetic.get_body(data)
+    splits = synthetic.split_names(sequences)
+    rng = np.random.default_rng(seed)
+    children = iter(rng.spawn(sequences))
+    for split in ("train", "test"):
+        trajectories = {}
+        for name in splits[split]:
+            frames = int(rng.integers(body.frames[0], body.frames[1] + 1))
+            seq = synthetic.simulate(data, frames, points=2000, rng=next(children))
+            _, joints = normalize_sequence(seq.vertices, seq.joints)
+            alpha = np.ones((*joints.shape[:2], 1), np.float32)
+            trajectories[name] = np.concatenate([joints, alpha], axis=-1)
+        io.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
+    parents = [int(p) for p in body.parents]
+    io.write_json(
+        folder / "skeleton.json",
+        {"parents": parents, "root": parents.index(0), "order": topological_order(parents)},
+    )
+    return folder
+
+
+def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    for (model, records), color in zip(runs.items(), ("tab:blue", "tab:orange"), strict=False):
+        train = [r for r in records if "train/loss" in r]
+        val = [r for r in records if "val/recon" in r]
+        axes[0].plot([r["step"] for r in train], [r["train/recon"] for r in train], color=color)
+        axes[0].set_title("train: Eq. 3 reconstruction (best of S)")
+        steps = [r["step"] for r in val]
+        axes[1].plot(steps, [r["val/recon"] for r in val], color=color, label=f"{model}")
+        best = [r["val/recon_best"] for r in val]
+        axes[1].plot(steps, best, color=color, ls=":", label=f"{model}, best of S")
+        axes[2].plot(steps, [r["val/gen"] for r in val], color=color, label=f"{model}")
+        if val:
+            axes[1].axhline(val[-1]["val/last_pose"], color="gray", ls="--")
+            axes[2].axhline(val[-1]["val/gen_hold"], color="gray", ls="--")
+    axes[1].set_title("val: posterior reconstruction (dashed: last pose)", fontsize=10)
+    axes[2].set_title("val: generation after T/4 frames (dashed: hold)", fontsize=10)
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+    axes[1].legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    with io.atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", default="synth-arm", choices=sorted(synthetic.BODIES))
+    parser.add_argument("--skel-run", default=None, help="a phase-1 run (default: oracle input)")
+    parser.add_argument("--preset", default="cpu")
+    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--models", nargs="+", default=["nm", "vrnn"])
+    parser.add_argument("--sequences", type=int, default=30)
+    parser.add_argument("--workdir", default="runs/experiments")
+    args = parser.parse_args()
+
+    workdir = Path(args.workdir)
+    if args.skel_run is None:
+        skel_run = oracle_run(args.data, workdir / f"oracle-{args.data}", args.sequences, seed=0)
+        source = "oracle: ground-truth joints of the synthetic generator (alpha = 1)"
+    else:
+        skel_run, source = Path(args.skel_run), f"phase-1 run {args.skel_run}"
+    runs, summary = {}, {}
+    for model in args.models:
+        cfg = dyn_preset(args.data, args.preset)
+        cfg = dataclasses.replace(
+            cfg,
+            skel_run=str(skel_run),
+            model=dataclasses.replace(cfg.model, model=model),
+            steps=args.steps,
+            val_every=max(args.steps // 10, 1),
+            ckpt_every=args.steps,
+            run=str(workdir / f"dyn-{args.data}-{model}-{args.preset}"),
+        )
+        run_dir = Path(cfg.run)
+        if run_dir.exists():
+            import shutil
+
+            shutil.rmtree(run_dir)
+        run_dir, _ = dyn.train(cfg, progress=False)
+        records = common.read_metrics(run_dir)
+        runs[model] = records
+        rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]
+        final = next(r for r in reversed(records) if "val/recon" in r)
+        summary[model] = {
+            "config": common.config_to_dict(cfg),
+            "final_validation": final,
+            "train_steps_per_s_median": float(np.median(rates)) if rates else None,
+        }
+        print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    stem = RESULTS / f"train_dyn_{args.data}"
+    io.write_json(
+        stem.with_suffix(".json"),
+        {"data": args.data, "input": source, "preset": args.preset, **summary, "curves": runs},
+    )
+    plot_curves(stem.with_suffix(".png"), runs, f"phase 2 on {args.data} ({source})")
+    print(f"wrote {stem}.json and {stem}.png")
+
+
+if __name__ == "__main__":
+    main()

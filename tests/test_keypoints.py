@@ -57,26 +57,30 @@ def _numpy_keypoints(heat):
 
 @SETTINGS
 @given(
-    batch=st.integers(1, 3),
-    g=st.integers(2, 6),
-    k=st.integers(1, 4),
+    batch=st.sampled_from([1, 3]),
+    g=st.sampled_from([2, 5]),
+    k=st.sampled_from([1, 4]),
     seed=st.integers(0, 2**16),
 )
 def test_heatmap_to_keypoints_matches_numpy(batch, g, k, seed):
     heat = np.random.default_rng(seed).random((batch, g, g, g, k)).astype(np.float32)
-    got = kpm.heatmap_to_keypoints(jnp.asarray(heat))
+    got = jax.jit(kpm.heatmap_to_keypoints)(jnp.asarray(heat))
     np.testing.assert_allclose(got, _numpy_keypoints(heat), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(jax.jit(kpm.heatmap_to_keypoints)(heat), got, rtol=1e-5, atol=1e-6)
     assert np.all((got[..., :3] >= -1 - 1e-5) & (got[..., :3] <= 1 + 1e-5))
 
 
 @SETTINGS
-@given(n=st.integers(2, 7), k=st.integers(1, 3), sigma=st.floats(0.5, 2.0), seed=st.integers(0, 99))
+@given(
+    n=st.sampled_from([2, 7]),
+    k=st.sampled_from([1, 3]),
+    sigma=st.floats(0.5, 2.0),
+    seed=st.integers(0, 99),
+)
 def test_gaussian_maps_matches_numpy(n, k, sigma, seed):
     rng = np.random.default_rng(seed)
     kp = np.concatenate([rng.uniform(-1, 1, (2, k, 3)), rng.uniform(0, 1, (2, k, 1))], -1)
     kp = kp.astype(np.float32)
-    got = np.asarray(kpm.gaussian_maps(jnp.asarray(kp), sigma, n))
+    got = np.asarray(jax.jit(kpm.gaussian_maps, static_argnums=2)(jnp.asarray(kp), sigma, n))
     grid = np.stack(np.meshgrid(*[np.linspace(-1, 1, n)] * 3, indexing="ij"), -1)
     d2 = ((grid[None, :, :, :, None, :] - kp[:, None, None, None, :, :3]) ** 2).sum(-1)
     want = kp[:, None, None, None, :, 3] * np.exp(-d2 / (2 * (sigma / n) ** 2))
@@ -102,7 +106,7 @@ def test_gradients_finite():
         kp = kpm.heatmap_to_keypoints(h)
         return jnp.sum(kpm.gaussian_maps(kp, 1.5, 4) ** 2)
 
-    g = jax.grad(f)(heat)
-    assert np.all(np.isfinite(g))
-    g0 = jax.grad(f)(jnp.zeros_like(heat))  # all-zero heatmaps: the eps guards keep it finite
+    grad = jax.jit(jax.grad(f))
+    assert np.all(np.isfinite(grad(heat)))
+    g0 = grad(jnp.zeros_like(heat))  # all-zero heatmaps: the eps guards keep it finite
     assert np.all(np.isfinite(g0))

@@ -190,7 +190,12 @@ def _jitted_terms(kp, a):
 
 
 @SETTINGS
-@given(b=st.integers(1, 2), t=st.integers(3, 4), k=st.integers(2, 4), seed=st.integers(0, 999))
+@given(
+    b=st.sampled_from([1, 2]),
+    t=st.sampled_from([3, 4]),
+    k=st.sampled_from([2, 4]),
+    seed=st.integers(0, 999),
+)
 def test_keypoint_losses_match_numpy(b, t, k, seed):
     rng = np.random.default_rng(seed)
     kp = random_keypoints(rng, (b, t, k))
@@ -211,12 +216,17 @@ def test_keypoint_losses_match_numpy(b, t, k, seed):
 
 
 @SETTINGS
-@given(lead=st.integers(1, 3), g=st.integers(2, 6), k=st.integers(1, 4), seed=st.integers(0, 999))
+@given(
+    lead=st.sampled_from([1, 3]),
+    g=st.sampled_from([2, 5]),
+    k=st.sampled_from([1, 4]),
+    seed=st.integers(0, 999),
+)
 def test_volume_fitting_matches_numpy(lead, g, k, seed):
     rng = np.random.default_rng(seed)
     vox = (rng.random((lead, 2, g, g, g)) < 0.3).astype(np.float32)
     kp = random_keypoints(rng, (lead, 2, k))
-    got = losses.volume_fitting(jnp.asarray(vox), jnp.asarray(kp))
+    got = jax.jit(losses.volume_fitting)(jnp.asarray(vox), jnp.asarray(kp))
     assert got.shape == (lead, 2)
     np.testing.assert_allclose(got, np_volume(vox, kp), rtol=1e-4, atol=1e-6)
 
@@ -231,15 +241,24 @@ def test_jit_equals_eager_and_vmap():
         "keypoints": jnp.asarray(random_keypoints(rng, (b, t, k))),
         "affinity": jnp.asarray(random_affinity(rng, 2, k)),
     }
-    for weights in (LossWeights(), dataclasses.replace(LossWeights(), intensity_weighted=True)):
-        total, terms = losses.skeleton_loss(outputs, weights)
-        jtotal, jterms = jax.jit(losses.skeleton_loss, static_argnums=1)(outputs, weights)
-        np.testing.assert_allclose(jtotal, total, rtol=1e-5)
-        assert set(terms) == set(losses.TERMS)
-        for name in losses.TERMS:
-            np.testing.assert_allclose(jterms[name], terms[name], rtol=1e-5, atol=1e-7)
-        want = sum(getattr(weights, n) * float(v) for n, v in terms.items())
-        np.testing.assert_allclose(total, want, rtol=1e-5)
+    weights = LossWeights()
+    total, terms = losses.skeleton_loss(outputs, weights)
+    jitted = jax.jit(losses.skeleton_loss, static_argnums=1)
+    jtotal, jterms = jitted(outputs, weights)
+    np.testing.assert_allclose(jtotal, total, rtol=1e-5)
+    assert set(terms) == set(losses.TERMS)
+    for name in losses.TERMS:
+        np.testing.assert_allclose(jterms[name], terms[name], rtol=1e-5, atol=1e-7)
+    want = sum(getattr(weights, n) * float(v) for n, v in terms.items())
+    np.testing.assert_allclose(total, want, rtol=1e-5)
+    # Intensity-weighted variant: the three graph terms change, the others do not.
+    weighted = dataclasses.replace(weights, intensity_weighted=True)
+    wtotal, wterms = jitted(outputs, weighted)
+    for name in losses.TERMS:
+        same = name not in ("local", "time", "traj")
+        assert np.isclose(wterms[name], terms[name], rtol=1e-6) == same, name
+    want = sum(getattr(weighted, n) * float(v) for n, v in wterms.items())
+    np.testing.assert_allclose(wtotal, want, rtol=1e-5)
     per_seq = jax.vmap(lambda kp: losses.separation(kp[None])[0])(outputs["keypoints"])
     np.testing.assert_allclose(per_seq, losses.separation(outputs["keypoints"]), rtol=1e-6)
     with pytest.raises(ValueError, match="affinity"):
@@ -255,10 +274,10 @@ def check_grads_jit(f, args, **kwargs):
 
 def test_check_grads_smooth_losses():
     rng = np.random.default_rng(2)
-    kp = jnp.asarray(random_keypoints(rng, (1, 4, 3)).astype(np.float64))
-    a = jnp.asarray(random_affinity(rng, 2, 3).astype(np.float64))
+    kp = jnp.asarray(random_keypoints(rng, (1, 4, 3)))
+    a = jnp.asarray(random_affinity(rng, 2, 3))
     params = jnp.asarray(rng.normal(size=(2, 3, 2)))
-    v = jnp.asarray((rng.random((1, 3, 3, 3)) < 0.5).astype(np.float64))
+    v = jnp.asarray((rng.random((1, 3, 3, 3)) < 0.5).astype(np.float32))
     r = jnp.asarray(rng.uniform(0.2, 0.8, (1, 3, 3, 3)))
     heat = jnp.asarray(rng.uniform(0.5, 1.0, (1, 2, 2, 2, 3)))
     mq, sq, mp, sp = (jnp.asarray(rng.uniform(0.5, 1.5, 4)) for _ in range(4))
@@ -313,3 +332,13 @@ def test_gradients_finite_with_coincident_keypoints_and_zero_velocity():
     for kp in (still, jnp.asarray(random_keypoints(rng, (2, t, k)))):
         gk, gp = grad(kp, params)
         assert np.all(np.isfinite(gk)) and np.all(np.isfinite(gp))
+
+
+def test_volume_fitting_memory_at_paper_scale():
+    # G=64, K=28, B=3, T=10 forward + gradient: compiled (not run) to read XLA's buffer plan.
+    voxels = jax.ShapeDtypeStruct((3, 10, 64, 64, 64), jnp.float32)
+    kp = jax.ShapeDtypeStruct((3, 10, 28, 4), jnp.float32)
+    fn = jax.jit(jax.value_and_grad(lambda v, x: losses.volume_fitting(v, x).mean(), argnums=1))
+    stats = fn.lower(voxels, kp).compile().memory_analysis()
+    total = stats.temp_size_in_bytes + stats.argument_size_in_bytes + stats.output_size_in_bytes
+    assert total < 512 * 2**20  # well under the 1.5 GB budget (about 220 MiB)

@@ -211,3 +211,18 @@ def test_degenerate_6d_has_finite_gradient():
     d6 = jnp.array([[0.0, 0, 0, 0, 0, 0], [1.0, 0, 0, 2.0, 0, 0]])  # zero, parallel halves
     g = jax.jit(jax.grad(lambda x: geo.rotation_6d_to_matrix(x).sum()))(d6)
     assert np.all(np.isfinite(g))
+
+
+def test_fk_gradient_compiles_with_several_batch_axes_and_vmap():
+    # Regression: batched dot_general of gathered operands crashed XLA:CPU's simplifier here.
+    d6 = jnp.asarray(np.random.default_rng(8).normal(size=(2, 3, 5, 6)).astype(np.float32))
+    offsets = jnp.ones((5, 3))
+
+    def f(d):
+        rots = geo.rotation_6d_to_matrix(d)
+        return geo.forward_kinematics(jnp.zeros(d.shape[:-2] + (3,)), rots, offsets, PARENTS, ORDER)
+
+    g = jax.jit(jax.grad(lambda d: f(d).sum()))(d6)
+    gv = jax.jit(jax.vmap(jax.grad(lambda d: f(d).sum())))(d6)
+    np.testing.assert_allclose(gv, g, atol=1e-5)
+    assert np.all(np.isfinite(g))

@@ -202,6 +202,11 @@ def slerp_matrices(r0: Array, r1: Array, t: Array | float) -> Array:
     return quaternion_to_matrix(slerp(matrix_to_quaternion(r0), matrix_to_quaternion(r1), t))
 
 
+def _matmul(a: Array, b: Array) -> Array:
+    """(..., 3, 3) @ (..., 3, 3) as a broadcast multiply-and-sum (see forward kinematics)."""
+    return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
 # --- forward kinematics (Eq. 2) ----------------------------------------------------------------
 
 
@@ -251,7 +256,8 @@ def forward_kinematics_with_rotations(
     a joint's offset is rotated by its own global rotation, which includes its local rotation.
 
     Vectorised: the joints of one tree depth are updated together, so the trace has one gather /
-    matmul per level (tree depth), never a loop over joints. `parents` and `order` are static
+    3x3 product per level (tree depth), never a loop over joints; it compiles, with its
+    gradient, for any number of batch axes and under `vmap`. `parents` and `order` are static
     (Python / NumPy integers, e.g. from `Skeleton`).
 
     Args:
@@ -278,15 +284,23 @@ def forward_kinematics_with_rotations(
     local_rots = jnp.broadcast_to(local_rots, (*lead, k, 3, 3))
     offsets = jnp.broadcast_to(offsets, (*lead, k, 3))
     root = int(levels[0][0])
-    glob = jnp.zeros_like(local_rots).at[..., root, :, :].set(local_rots[..., root, :, :])
-    pos = jnp.zeros((*lead, k, 3), local_rots.dtype)
-    pos = pos.at[..., root, :].set(jnp.broadcast_to(root_pos, (*lead, 3)))
-    for level in levels[1:]:  # tree depth, not joints
-        par = parents[level]
-        r = glob[..., par, :, :] @ local_rots[..., level, :, :]
-        glob = glob.at[..., level, :, :].set(r)
-        step = jnp.einsum("...kij,...kj->...ki", r, offsets[..., level, :])
-        pos = pos.at[..., level, :].set(pos[..., par, :] + step)
+    # One array per depth level; a joint's parent sits in the previous level, found by a static
+    # index into it. The levels are concatenated and put back in joint order at the end: static
+    # gathers only, no scatters. The 3x3 products are written as broadcast multiply-and-sum:
+    # XLA:CPU (jax 0.10.2) crashes in its algebraic simplifier on the gradient of a batched
+    # dot_general of gathered operands when there are several batch axes or a vmap.
+    glob_levels = [local_rots[..., root : root + 1, :, :]]
+    pos_levels = [jnp.broadcast_to(root_pos, (*lead, 3))[..., None, :]]
+    for prev, level in zip(levels[:-1], levels[1:], strict=True):  # tree depth, not joints
+        slot = {int(j): i for i, j in enumerate(prev)}
+        par = np.array([slot[int(parents[j])] for j in level])
+        r = _matmul(glob_levels[-1][..., par, :, :], local_rots[..., level, :, :])
+        step = jnp.sum(r * offsets[..., level, None, :], axis=-1)  # R_k d_k
+        glob_levels.append(r)
+        pos_levels.append(pos_levels[-1][..., par, :] + step)
+    back = np.argsort(np.concatenate(levels))  # level order -> joint order
+    glob = jnp.concatenate(glob_levels, axis=-3)[..., back, :, :]
+    pos = jnp.concatenate(pos_levels, axis=-2)[..., back, :]
     return pos, glob
 
 

@@ -104,7 +104,7 @@ def separation(keypoints: Array, sigma: float = 0.02, *, per_frame: bool = False
         e = jnp.exp(-jnp.mean(d, axis=-3) / (2 * sigma**2))  # (..., K, K)
     k = keypoints.shape[-2]
     off_diagonal = 1.0 - jnp.eye(k, dtype=e.dtype)
-    return jnp.sum(e * off_diagonal, axis=(-2, -1)) / (k * (k - 1))
+    return jnp.sum(e * off_diagonal, axis=(-2, -1)) / max(k * (k - 1), 1)  # K = 1: no pairs, 0
 
 
 def _nearest_keypoint(sq: Array) -> Array:
@@ -133,7 +133,8 @@ def _volume_frame(occupancy: Array, mu: Array, points: Array) -> Array:
     # no gradient; the exact squared distance to that keypoint is then recomputed, and the
     # backward pass keeps only the (P,) indices instead of the (K, P) matrix.
     fixed = jax.lax.stop_gradient(mu)
-    sq = jnp.sum(jnp.square(fixed), axis=-1)[:, None] - 2.0 * fixed @ points.T
+    cross = jnp.matmul(fixed, points.T, precision=jax.lax.Precision.HIGHEST)  # no TF32 on GPU
+    sq = jnp.sum(jnp.square(fixed), axis=-1)[:, None] - 2.0 * cross
     nearest = _nearest_keypoint(sq)  # (P,)
     dist = jnp.sum(jnp.square(points - mu[nearest]), axis=-1)  # (P,)
     return jnp.sum(occupancy * dist) / jnp.maximum(jnp.sum(occupancy), 1.0)

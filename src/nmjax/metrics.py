@@ -133,7 +133,8 @@ def _nearest_sq_dist(a: Array, b: Array, b_mask: Array, chunk: int) -> Array:
     b_sq = jnp.sum(jnp.square(b), axis=-1)
 
     def block(x):  # (chunk, 3) -> (chunk,); a (chunk, M) matrix at a time, never (chunk, M, 3)
-        d = jnp.sum(jnp.square(x), axis=-1)[:, None] - 2.0 * x @ b.T + b_sq[None, :]
+        cross = jnp.matmul(x, b.T, precision=jax.lax.Precision.HIGHEST)
+        d = jnp.sum(jnp.square(x), axis=-1)[:, None] - 2.0 * cross + b_sq[None, :]
         return jnp.maximum(jnp.min(jnp.where(b_mask[None, :], d, jnp.inf), axis=-1), 0.0)
 
     return jax.lax.map(block, blocks).reshape(-1)[:n]

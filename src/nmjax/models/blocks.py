@@ -1,0 +1,250 @@
+"""3D convolution blocks of the keypoint detector (paper Fig. 9): channels-last (..., X, Y, Z, C).
+
+Every block takes a batch (B, X, Y, Z, C); callers fold time into the batch axis.
+
+`Conv3D` computes exactly the 3D convolution but not with XLA's 3D convolution on CPU, which is
+3-10x slower there than its 2D convolution: a stride-1 kernel is evaluated as a sum over the k
+depth offsets of 2D convolutions (x, y, z) -> ((B x), y, z); the strided 2x2x2 "pool" is a
+space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul and a
+depth-to-space reshape. On GPU/TPU backends the native convolution is used.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from nmjax.keypoints import coord_grid
+
+LEAK = 0.2  # LeakyReLU slope
+
+
+def num_groups(channels: int) -> int:
+    """GroupNorm groups: channels / 16 (DESIGN section 6), at least 1 and dividing `channels`."""
+    return math.gcd(channels, max(1, channels // 16))
+
+
+_NDHWC = ("NDHWC", "DHWIO", "NDHWC")
+_NHWC = ("NHWC", "HWIO", "NHWC")
+
+
+def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
+    """Stride-1 'SAME' 3D convolution (cross-correlation) of x (B,X,Y,Z,Ci) with (k,k,k,Ci,Co).
+
+    Odd k only. On CPU: sum over the k offsets along X of 2D convolutions over (Y, Z), with X
+    folded into the batch axis (a fixed loop over kernel taps, not over data).
+    """
+    k = kernel.shape[0]
+    if k % 2 == 0:
+        raise ValueError(f"conv3d_same needs an odd kernel size, got {k}")
+    if jax.default_backend() != "cpu":
+        return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
+    b, nx, ny, nz, ci = x.shape
+    p = k // 2
+    padded = jnp.pad(x, ((0, 0), (p, p), (p, p), (p, p), (0, 0)))
+    out = None
+    for a in range(k):
+        plane = padded[:, a : a + nx].reshape(b * nx, ny + 2 * p, nz + 2 * p, ci)
+        y = jax.lax.conv_general_dilated(plane, kernel[a], (1, 1), "VALID", dimension_numbers=_NHWC)
+        out = y if out is None else out + y
+    return out.reshape(b, nx, ny, nz, kernel.shape[-1])
+
+
+def space_to_depth(x: jax.Array) -> jax.Array:
+    """(B, X, Y, Z, C) -> (B, X/2, Y/2, Z/2, 8C); each 2x2x2 cell gathered in (dx, dy, dz, c)."""
+    b, nx, ny, nz, c = x.shape
+    x = x.reshape(b, nx // 2, 2, ny // 2, 2, nz // 2, 2, c)
+    return x.transpose(0, 1, 3, 5, 2, 4, 6, 7).reshape(b, nx // 2, ny // 2, nz // 2, 8 * c)
+
+
+def depth_to_space(x: jax.Array) -> jax.Array:
+    """Inverse of `space_to_depth`: (B, X, Y, Z, 8C) -> (B, 2X, 2Y, 2Z, C)."""
+    b, nx, ny, nz, c8 = x.shape
+    c = c8 // 8
+    x = x.reshape(b, nx, ny, nz, 2, 2, 2, c).transpose(0, 1, 4, 2, 5, 3, 6, 7)
+    return x.reshape(b, 2 * nx, 2 * ny, 2 * nz, c)
+
+
+class Conv3D(nnx.Module):
+    """3D convolution, channels-last, 'SAME' padding, kernel (k,k,k,in,out) and bias.
+
+    kernel=k, stride=1: ordinary convolution (odd k). kernel=2, stride=2: strided convolution
+    halving each axis ("pool"). transpose=True, kernel=2, stride=2: transposed convolution
+    doubling each axis. Initialisation as `nnx.Conv` (LeCun normal, zero bias).
+    """
+
+    def __init__(
+        self,
+        in_ch: int,
+        out_ch: int,
+        kernel: int = 3,
+        stride: int = 1,
+        *,
+        transpose: bool = False,
+        rngs: nnx.Rngs,
+    ):
+        if stride not in (1, kernel) or (stride == kernel and kernel not in (1, 2)):
+            raise ValueError(
+                f"Conv3D supports stride 1, or kernel = stride = 2; got {kernel}, {stride}"
+            )
+        if transpose and (kernel, stride) != (2, 2):
+            raise ValueError("Conv3D: transposed convolution only with kernel = stride = 2")
+        self.kernel_size, self.stride, self.transpose = kernel, stride, transpose
+        init = nnx.initializers.lecun_normal()
+        shape = (kernel, kernel, kernel, in_ch, out_ch)
+        self.kernel = nnx.Param(init(rngs.params(), shape, jnp.float32))
+        self.bias = nnx.Param(jnp.zeros((out_ch,), jnp.float32))
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        w = self.kernel[...]
+        k = self.kernel_size
+        if k == 1:
+            y = jnp.einsum("...i,io->...o", x, w[0, 0, 0])
+        elif self.transpose:  # each input cell paints its own 2x2x2 block of the output
+            y = depth_to_space(jnp.einsum("...i,abcio->...abco", x, w).reshape(*x.shape[:-1], -1))
+        elif self.stride == 2:  # each output cell sees exactly one 2x2x2 block of the input
+            y = space_to_depth(x) @ w.reshape(-1, w.shape[-1])
+        else:
+            y = conv3d_same(x, w)
+        return y + self.bias[...]
+
+
+class ConvNormAct(nnx.Module):
+    """conv (kernel k, stride s, SAME padding) -> GroupNorm -> LeakyReLU."""
+
+    def __init__(
+        self, in_ch: int, out_ch: int, kernel: int = 3, stride: int = 1, *, rngs: nnx.Rngs
+    ):
+        self.conv = Conv3D(in_ch, out_ch, kernel, stride, rngs=rngs)
+        self.norm = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)
+
+
+class ResBlock(nnx.Module):
+    """Residual block: two conv3 + GroupNorm, a 1x1x1 projection on the skip when widths differ."""
+
+    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
+        self.conv1 = ConvNormAct(in_ch, out_ch, 3, rngs=rngs)
+        self.conv2 = Conv3D(out_ch, out_ch, 3, rngs=rngs)
+        self.norm2 = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+        self.skip = Conv3D(in_ch, out_ch, 1, rngs=rngs) if in_ch != out_ch else None
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        y = self.norm2(self.conv2(self.conv1(x)))
+        skip = x if self.skip is None else self.skip(x)
+        return nnx.leaky_relu(y + skip, LEAK)
+
+
+class Pool(nnx.Module):
+    """Strided 2x2x2 convolution halving each spatial axis, then GroupNorm + LeakyReLU."""
+
+    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
+        self.block = ConvNormAct(in_ch, out_ch, kernel=2, stride=2, rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.block(x)
+
+
+class Upsample(nnx.Module):
+    """Transposed 2x2x2 convolution doubling each spatial axis, then GroupNorm + LeakyReLU."""
+
+    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
+        self.conv = Conv3D(in_ch, out_ch, 2, 2, transpose=True, rngs=rngs)
+        self.norm = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)
+
+
+def hourglass_levels(size: int, requested: int) -> int:
+    """How many pool levels an hourglass on a `size`^3 grid can have: at most `requested`, and no
+    more than the number of times `size` halves to an integer (a G=16 input has g=4: 2 levels)."""
+    levels = 0
+    while levels < requested and size % 2 == 0 and size > 1:
+        size //= 2
+        levels += 1
+    return levels
+
+
+class Hourglass(nnx.Module):
+    """3D hourglass (Xu et al. 2019b style, paper Fig. 9): pool/residual levels down, transposed-
+    conv upsampling back, a residual skip at every resolution added on the way up.
+
+    With widths (32, 48, 72) and input width c: c@g -> 32@g/2 -> 48@g/4 -> 72@g/8 -> back to c@g.
+    """
+
+    def __init__(self, channels: int, widths: tuple[int, ...], size: int, *, rngs: nnx.Rngs):
+        levels = hourglass_levels(size, len(widths))
+        widths = (channels, *widths[:levels])
+        self.down = nnx.List([_Down(widths[i], widths[i + 1], rngs=rngs) for i in range(levels)])
+        self.skips = nnx.List([ResBlock(w, w, rngs=rngs) for w in widths[:levels]])
+        self.bottom = ResBlock(widths[levels], widths[levels], rngs=rngs)
+        self.up = nnx.List(
+            [Upsample(widths[i + 1], widths[i], rngs=rngs) for i in reversed(range(levels))]
+        )
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        skips = []
+        for down, skip in zip(self.down, self.skips, strict=True):  # fixed depth, not data
+            skips.append(skip(x))
+            x = down(x)
+        x = self.bottom(x)
+        for up, skip in zip(self.up, reversed(skips), strict=True):
+            x = up(x) + skip
+        return x
+
+
+class _Down(nnx.Module):
+    """One hourglass level down: strided pool then a residual block changing the width."""
+
+    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
+        self.pool = Pool(in_ch, in_ch, rngs=rngs)
+        self.res = ResBlock(in_ch, out_ch, rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.res(self.pool(x))
+
+
+def upsample_trilinear(x: jax.Array) -> jax.Array:
+    """(B, X, Y, Z, C) -> (B, 2X, 2Y, 2Z, C) by trilinear interpolation (half-pixel centres)."""
+    b, nx, ny, nz, c = x.shape
+    return jax.image.resize(x, (b, 2 * nx, 2 * ny, 2 * nz, c), method="linear")
+
+
+class FeatureNet(nnx.Module):
+    """f_feat of paper Fig. 9: (B, G, G, G) occupancy -> (B, G/4, G/4, G/4, C) features.
+
+    CoordConv conv5 on [occupancy, x, y, z] (-> C/4) + GN + LeakyReLU, pool, residual
+    (C/4 -> C/2), pool, hourglass at G/4, residual (C/2 -> C). The stem is linear in its input
+    channels, so the three coordinate channels (identical for every sample) are convolved once
+    and broadcast instead of being concatenated to every sample: the same function, 4x cheaper.
+    """
+
+    def __init__(
+        self,
+        channels: int,
+        hourglass_channels: tuple[int, ...],
+        grid: int,
+        *,
+        rngs: nnx.Rngs,
+    ):
+        c4, c2 = max(1, channels // 4), max(1, channels // 2)
+        self.stem = ConvNormAct(1 + 3, c4, kernel=5, rngs=rngs)
+        self.pool1 = Pool(c4, c4, rngs=rngs)
+        self.res1 = ResBlock(c4, c2, rngs=rngs)
+        self.pool2 = Pool(c2, c2, rngs=rngs)
+        self.hourglass = Hourglass(c2, hourglass_channels, grid // 4, rngs=rngs)
+        self.res2 = ResBlock(c2, channels, rngs=rngs)
+
+    def __call__(self, voxels: jax.Array) -> jax.Array:
+        w = self.stem.conv.kernel[...]  # (5, 5, 5, 1 + 3, C/4)
+        coords = coord_grid(voxels.shape[1])[None]  # (1, G, G, G, 3)
+        x = conv3d_same(voxels[..., None], w[..., :1, :]) + conv3d_same(coords, w[..., 1:, :])
+        x = nnx.leaky_relu(self.stem.norm(x + self.stem.conv.bias[...]), LEAK)
+        x = self.res1(self.pool1(x))
+        return self.res2(self.hourglass(self.pool2(x)))

@@ -1,0 +1,159 @@
+"""Keypoint detector of the skeleton module (paper Sec. 4, Fig. 8-9; DESIGN section 6).
+
+voxels v_{1:T} -> per-frame features c_t (f_feat) -> heatmaps (f_heat, fused with the
+spatio-temporal heatmaps of the temporal mean, Eq. 6) -> keypoints x_t = (mu, alpha) ->
+gaussian maps g_t -> reconstruction v_hat_t = f_dec(g_t, c_1, g_1) relative to v_1 (Eq. 7).
+The N affinity matrices (Eq. 12) are free parameters of the same module.
+Frames are folded into the batch axis; nothing loops over time or keypoints.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from nmjax import keypoints as kp_lib
+from nmjax import losses
+from nmjax.config import DetectorConfig
+from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet, upsample_trilinear
+
+
+def check_detector_config(cfg: DetectorConfig) -> None:
+    """Raises ValueError naming the field when `cfg` cannot build a working detector."""
+    if cfg.num_keypoints < 2:
+        raise ValueError(
+            f"model.num_keypoints (K) must be >= 2 for an affinity between keypoints, got "
+            f"{cfg.num_keypoints}"
+        )
+    if cfg.grid < 4 or cfg.grid % 4:
+        raise ValueError(
+            f"model.grid (G) must be a positive multiple of 4 (heatmaps live on G/4), got "
+            f"{cfg.grid}"
+        )
+    if cfg.channels < 4:
+        raise ValueError(f"model.channels (C) must be >= 4 (C/4 stem channels), got {cfg.channels}")
+    if cfg.num_affinity < 1:
+        raise ValueError(f"model.num_affinity (N) must be >= 1, got {cfg.num_affinity}")
+    if cfg.sigma_g <= 0:
+        raise ValueError(f"model.sigma_g must be positive, got {cfg.sigma_g}")
+
+
+class VoxelDecoder(nnx.Module):
+    """f_dec of Fig. 9: [g_t, c_1, g_1, coords] at g^3 -> raw occupancy logits at G^3."""
+
+    def __init__(self, in_ch: int, channels: int, *, rngs: nnx.Rngs):
+        c2, c4 = max(1, channels // 2), max(1, channels // 4)
+        self.inp = Conv3D(in_ch, channels, 1, rngs=rngs)
+        self.up1 = nnx.Sequential(
+            ConvNormAct(channels, c2, 3, rngs=rngs), ConvNormAct(c2, c2, 3, rngs=rngs)
+        )
+        self.up2 = nnx.Sequential(
+            ConvNormAct(c2, c4, 3, rngs=rngs), ConvNormAct(c4, c4, 3, rngs=rngs)
+        )
+        self.out = Conv3D(c4, 1, 1, rngs=rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        x = nnx.leaky_relu(self.inp(x), LEAK)
+        x = self.up1(upsample_trilinear(x))
+        x = self.up2(upsample_trilinear(x))
+        return self.out(x)[..., 0]
+
+
+class KeypointDetector(nnx.Module):
+    """The phase-1 network: keypoints, reconstruction and affinity parameters.
+
+    Attributes:
+      features: f_feat on single frames (C channels).
+      st_features: the same network with 2C channels on the temporal mean (Eq. 6).
+      heat, st_heat: 1x1x1 heatmap heads (-> K), softplus.
+      fuse: 1x1x1 conv (2 -> 1) shared by all keypoints, fusing frame and spatio-temporal heatmaps.
+      decoder: f_dec.
+      affinity_params: (N, K, K-1) initialised to ones (Eq. 12).
+    """
+
+    def __init__(self, cfg: DetectorConfig, *, rngs: nnx.Rngs):
+        check_detector_config(cfg)
+        self.cfg = cfg
+        k, c = cfg.num_keypoints, cfg.channels
+        hg = tuple(cfg.hourglass_channels)
+        self.features = FeatureNet(c, hg, cfg.grid, rngs=rngs)
+        self.st_features = FeatureNet(2 * c, hg, cfg.grid, rngs=rngs)
+        self.heat = Conv3D(c, k, 1, rngs=rngs)
+        self.st_heat = Conv3D(2 * c, k, 1, rngs=rngs)
+        self.fuse = nnx.Linear(2, 1, rngs=rngs)  # a 1x1x1 conv over the 2 stacked heatmaps
+        self.decoder = VoxelDecoder(2 * k + c + 3, c, rngs=rngs)
+        self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
+
+    def affinity(self) -> jax.Array:
+        """(N, K, K) row-softmaxed affinity with zero diagonal (Eq. 12)."""
+        return losses.affinity_from_params(self.affinity_params[...])
+
+    def detect(self, voxels: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Heatmaps and keypoints of every frame.
+
+        Args:
+          voxels: (B, T, G, G, G) occupancy in [0, 1].
+
+        Returns:
+          heatmaps (B, T, g, g, g, K), keypoints (B, T, K, 4), features (B, T, g, g, g, C).
+        """
+        b, t = voxels.shape[:2]
+        feats = self.features(voxels.reshape(b * t, *voxels.shape[2:]))  # (B*T, g, g, g, C)
+        heat = jax.nn.softplus(self.heat(feats))  # (B*T, g, g, g, K)
+        mean = jnp.mean(voxels, axis=1)  # (B, G, G, G): the temporal mean of Eq. 6
+        st_heat = jax.nn.softplus(self.st_heat(self.st_features(mean)))  # (B, g, g, g, K)
+        heat = heat.reshape(b, t, *heat.shape[1:])
+        st_heat = jnp.broadcast_to(st_heat[:, None], heat.shape)
+        stacked = jnp.stack([heat, st_heat], axis=-1)  # (B, T, g, g, g, K, 2)
+        heatmaps = jax.nn.softplus(self.fuse(stacked)[..., 0])
+        keypoints = kp_lib.heatmap_to_keypoints(heatmaps)
+        return heatmaps, keypoints, feats.reshape(b, t, *feats.shape[1:])
+
+    def decode(self, keypoints: jax.Array, first_features: jax.Array, first_voxels: jax.Array):
+        """Eq. 7: reconstruction of every frame from its keypoints and the first frame.
+
+        Args:
+          keypoints: (B, T, K, 4).
+          first_features: (B, g, g, g, C) features c_1 of frame 1.
+          first_voxels: (B, G, G, G) v_1.
+
+        Returns:
+          (B, T, G, G, G) probabilities sigmoid(s (tanh(raw) + v_1 - 0.5)).
+        """
+        b, t, k = keypoints.shape[:3]
+        g = first_features.shape[1]
+        maps = kp_lib.gaussian_maps(keypoints, self.cfg.sigma_g, g)  # (B, T, g, g, g, K)
+        context = jnp.concatenate([first_features, maps[:, 0]], axis=-1)  # (B, g, g, g, C+K)
+        context = jnp.broadcast_to(context[:, None], (b, t, *context.shape[1:]))
+        x = kp_lib.add_coord_channels(jnp.concatenate([maps, context], axis=-1))
+        raw = self.decoder(x.reshape(b * t, *x.shape[2:]))  # (B*T, G, G, G)
+        raw = raw.reshape(b, t, *raw.shape[1:])
+        sharp = self.cfg.decoder_sharpness
+        return jax.nn.sigmoid(sharp * (jnp.tanh(raw) + first_voxels[:, None] - 0.5))
+
+    def __call__(self, voxels: jax.Array) -> dict[str, jax.Array]:
+        """Runs the detector on a batch of crops.
+
+        Args:
+          voxels: (B, T, G, G, G) float32 occupancy.
+
+        Returns:
+          dict with "voxels" (the input), "recon" (B,T,G,G,G) probabilities, "heatmaps"
+          (B,T,g,g,g,K), "keypoints" (B,T,K,4) and "affinity" (N,K,K): the inputs of
+          `nmjax.losses.skeleton_loss`.
+        """
+        g = self.cfg.grid
+        if voxels.ndim != 5 or voxels.shape[2:] != (g, g, g):
+            raise ValueError(
+                f"KeypointDetector: expected voxels (B, T, {g}, {g}, {g}), got {voxels.shape}"
+            )
+        heatmaps, keypoints, feats = self.detect(voxels)
+        recon = self.decode(keypoints, feats[:, 0], voxels[:, 0])
+        return {
+            "voxels": voxels,
+            "recon": recon,
+            "heatmaps": heatmaps,
+            "keypoints": keypoints,
+            "affinity": self.affinity(),
+        }

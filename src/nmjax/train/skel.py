@@ -1,0 +1,470 @@
+"""Phase 1: train the keypoint detector and the affinity (paper Eq. 23); `nmjax train-skel`.
+
+    nmjax train-skel --data synth-arm --preset cpu [--steps N] [--run DIR] [--resume]
+                     [--overwrite] [--set model.channels=16 --set weights.vol=1.0 ...]
+
+One jit-compiled step over the pytree `nnx.state((model, optimizer))` (split once, donated).
+Periodic validation on the test split (loss terms, SC-score Eq. 21 when joints exist, a picture),
+orbax checkpoints (latest few + best validation loss, with the grain iterator position, so
+`--resume` continues exactly), metrics to JSONL and TensorBoard. At the end the run folder gets
+the artefacts phase 2 needs (contract C10): affinity.npy, keypoint_stats.npz, skeleton.json and
+keypoints_{train,test}.npz.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import datetime
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+
+from nmjax import io, losses, metrics
+from nmjax.config import DATASETS, PRESETS, SkelTrainConfig, dataset_spec, skel_preset
+from nmjax.models.detector import KeypointDetector, check_detector_config
+from nmjax.train import common
+
+BEST_METRIC = "val/loss"
+
+
+class NonFiniteLossError(RuntimeError):
+    """The training loss became NaN or infinite."""
+
+
+# --- configuration -----------------------------------------------------------------------------
+
+
+def check_config(cfg: SkelTrainConfig) -> None:
+    """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
+    check_detector_config(cfg.model)
+    if cfg.data.frames < 3:
+        raise ValueError(
+            f"data.frames (T) must be >= 3 (the trajectory loss needs accelerations), got "
+            f"{cfg.data.frames}"
+        )
+    if cfg.data.grid != cfg.model.grid:
+        raise ValueError(
+            f"data.grid ({cfg.data.grid}) and model.grid ({cfg.model.grid}) must be equal; set "
+            "both (e.g. --set data.grid=32 --set model.grid=32)"
+        )
+    if cfg.data.batch_size < 1:
+        raise ValueError(f"data.batch_size must be >= 1, got {cfg.data.batch_size}")
+    for name in ("steps", "log_every", "val_every", "val_batches", "ckpt_every"):
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+
+
+def _parse_value(text: str, current: Any, key: str) -> Any:
+    if isinstance(current, bool):
+        if text.lower() in ("1", "true", "yes"):
+            return True
+        if text.lower() in ("0", "false", "no"):
+            return False
+        raise ValueError(f"--set {key}: expected true/false, got {text!r}")
+    if isinstance(current, tuple):
+        parts = [p for p in text.strip("()[] ").split(",") if p.strip()]
+        kind = type(current[0]) if current else float
+        return tuple(kind(p) for p in parts)
+    if current is None:
+        return None if text.lower() == "none" else text
+    try:
+        return type(current)(text) if not isinstance(current, int) else int(text)
+    except ValueError:
+        raise ValueError(f"--set {key}: cannot read {text!r} as {type(current).__name__}") from None
+
+
+def apply_overrides(cfg: Any, assignments: Sequence[str]) -> Any:
+    """Returns `cfg` with dotted-path overrides like "model.channels=16" or "lr_decay=0.5,0.1"."""
+    for item in assignments:
+        if "=" not in item:
+            raise ValueError(f"--set expects FIELD=VALUE (e.g. model.channels=16), got {item!r}")
+        key, text = item.split("=", 1)
+        cfg = _replace_path(cfg, key.strip().split("."), text.strip(), key)
+    return cfg
+
+
+def _replace_path(obj: Any, path: list[str], text: str, key: str) -> Any:
+    names = {f.name for f in dataclasses.fields(obj)}
+    if path[0] not in names:
+        raise ValueError(
+            f"--set {key}: {type(obj).__name__} has no field {path[0]!r}; fields: {sorted(names)}"
+        )
+    current = getattr(obj, path[0])
+    if len(path) == 1:
+        if dataclasses.is_dataclass(current):
+            raise ValueError(f"--set {key}: {path[0]} is a group; set one of its fields")
+        value = _parse_value(text, current, key)
+    else:
+        if not dataclasses.is_dataclass(current):
+            raise ValueError(f"--set {key}: {path[0]} has no sub-fields")
+        value = _replace_path(current, path[1:], text, key)
+    return dataclasses.replace(obj, **{path[0]: value})
+
+
+# --- model, state and the compiled steps -------------------------------------------------------
+
+
+def build(cfg: SkelTrainConfig, seed: int | None = None):
+    """(graphdef, state) of the detector and its optimizer, initialised from `seed`."""
+    model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed if seed is None else seed))
+    tx = common.make_optimizer(cfg.learning_rate, cfg.lr_milestones, cfg.lr_decay, cfg.clip_norm)
+    optimizer = nnx.Optimizer(model, tx, wrt=nnx.Param)
+    return nnx.split((model, optimizer))
+
+
+class Steps:
+    """The jit-compiled train and eval steps of one configuration.
+
+    `train_traces` counts how often the train step was traced (it must stay 1).
+    """
+
+    def __init__(self, graphdef: Any, cfg: SkelTrainConfig):
+        self.graphdef, self.weights = graphdef, cfg.weights
+        self.train_traces = 0
+        self.train = jax.jit(self._train, donate_argnums=0)
+        self.eval = jax.jit(self._eval)
+
+    def _train(self, state: Any, voxels: jax.Array) -> tuple[Any, dict[str, jax.Array]]:
+        self.train_traces += 1
+        model, optimizer = nnx.merge(self.graphdef, state)
+
+        def loss_fn(model: KeypointDetector):
+            return losses.skeleton_loss(model(voxels), self.weights)
+
+        (loss, terms), grads = nnx.value_and_grad(loss_fn, has_aux=True)(model)
+        optimizer.update(model, grads)
+        scalars = {"loss": loss, "grad_norm": optax.global_norm(grads), **terms}
+        return nnx.state((model, optimizer)), scalars
+
+    def _eval(self, state: Any, voxels: jax.Array) -> tuple[dict[str, jax.Array], jax.Array]:
+        model, _ = nnx.merge(self.graphdef, state)
+        out = model(voxels)
+        loss, terms = losses.skeleton_loss(out, self.weights)
+        return {"loss": loss, **terms}, out["keypoints"]
+
+
+def model_of(graphdef: Any, state: Any) -> KeypointDetector:
+    return nnx.merge(graphdef, state)[0]
+
+
+def abstract_state(state: Any) -> Any:
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
+
+
+# --- validation --------------------------------------------------------------------------------
+
+
+def validate(
+    steps: Steps, state: Any, batches: list[dict[str, np.ndarray]]
+) -> tuple[dict[str, float], np.ndarray]:
+    """Mean loss terms over `batches` (prefixed "val/"), SC-score when joints exist.
+
+    Returns (scalars, keypoints of every batch stacked (num_batches, B, T, K, 4)).
+    """
+    sums: dict[str, float] = {}
+    sc = metrics.SemanticConsistency()
+    all_kp = []
+    for batch in batches:
+        terms, keypoints = steps.eval(state, jnp.asarray(batch["voxels"]))
+        for name, value in terms.items():
+            sums[name] = sums.get(name, 0.0) + float(value)
+        if "joints" in batch:
+            sc.update(keypoints, batch["joints"])
+        all_kp.append(np.asarray(keypoints))
+    scalars = {f"val/{k}": v / len(batches) for k, v in sums.items()}
+    if sc.counts is not None and sc.frames > 0:
+        scalars["val/sc_score"] = sc.result()
+    return scalars, np.stack(all_kp)
+
+
+# --- the training loop -------------------------------------------------------------------------
+
+
+def default_run_dir(data: str) -> Path:
+    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / f"skel-{data}-{stamp}"
+
+
+def train(
+    cfg: SkelTrainConfig,
+    run_dir: str | Path,
+    *,
+    resume: bool = False,
+    overwrite: bool = False,
+    finalize: bool = True,
+    progress: bool = True,
+    step_hook: Callable[[int, Any], Any] | None = None,
+) -> dict[str, Any]:
+    """Trains phase 1 into `run_dir` until `cfg.steps`; returns a summary dict.
+
+    Args:
+      cfg: the full configuration (checked before anything is compiled).
+      run_dir: the run folder (contract C10).
+      resume: continue from the latest checkpoint of `run_dir` (state, step, data position).
+      overwrite: replace an existing `run_dir`.
+      finalize: write affinity.npy, keypoint_stats.npz, skeleton.json, keypoints_*.npz at the end.
+      progress: show a tqdm bar.
+      step_hook: test hook `(step, state) -> state` applied after each step.
+
+    Raises:
+      NonFiniteLossError: the loss became NaN/inf; the message gives the step, and the last good
+        checkpoint stays on disk.
+    """
+    from tqdm import tqdm
+
+    from nmjax.data import pipeline
+
+    check_config(cfg)
+    run = common.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
+    graphdef, state = build(cfg)
+    steps = Steps(graphdef, cfg)
+    data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
+    val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
+    ckpt = common.Checkpointer(run / "checkpoints", cfg.keep_checkpoints, best_metric=BEST_METRIC)
+    start = 0
+    if resume:
+        if ckpt.latest_step() is None:
+            raise FileNotFoundError(
+                f"cannot resume {run}: it has no checkpoint yet; start it again with --overwrite"
+            )
+        start, state = ckpt.restore(abstract_state(state), data_iter=data_iter)
+    writer = common.MetricWriter(run, resume_step=start if resume else None)
+    summary: dict[str, Any] = {"run": str(run), "start_step": start}
+    pbar = tqdm(total=cfg.steps, initial=start, disable=not progress, dynamic_ncols=True)
+    t_last, step_last = time.perf_counter(), start
+    last_val: dict[str, float] = {}
+    try:
+        step = start
+        while step < cfg.steps:
+            batch = next(data_iter)
+            state, scalars = steps.train(state, jnp.asarray(batch["voxels"]))
+            step += 1
+            if step_hook is not None:
+                state = step_hook(step, state)
+            loss = float(scalars["loss"])
+            if not math.isfinite(loss):
+                raise NonFiniteLossError(
+                    f"loss became {loss} at step {step}; training stopped. The last good "
+                    f"checkpoint (step {ckpt.latest_step()}) in {run / 'checkpoints'} is kept; "
+                    "lower learning_rate or clip_norm and resume or restart"
+                )
+            pbar.update(1)
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                now = time.perf_counter()
+                rate = (step - step_last) / max(now - t_last, 1e-9)
+                t_last, step_last = now, step
+                logged = {f"train/{k}": float(v) for k, v in scalars.items()}
+                logged["train/steps_per_s"] = rate
+                writer.write_scalars(step, logged)
+                pbar.set_postfix(loss=f"{loss:.4g}", steps_s=f"{rate:.2f}")
+            val_metrics = None
+            if step % cfg.val_every == 0 or step == cfg.steps:
+                val_metrics, val_kp = validate(steps, state, val_batches)
+                last_val = val_metrics
+                writer.write_scalars(step, val_metrics)
+                _validation_figure(run, step, graphdef, state, val_batches, val_kp)
+                pbar.write(
+                    f"step {step}: "
+                    + " ".join(f"{k[4:]}={v:.4g}" for k, v in sorted(val_metrics.items()))
+                )
+            if step % cfg.ckpt_every == 0 or step == cfg.steps:
+                if step not in ckpt.all_steps():
+                    ckpt.save(step, state, metrics=val_metrics, data_iter=data_iter)
+        summary.update(step=step, train_traces=steps.train_traces, **last_val)
+    finally:
+        pbar.close()
+        writer.close()
+        ckpt.close()
+    if finalize:
+        write_artifacts(run, graphdef, state, val_batches, steps)
+    return summary
+
+
+def _validation_figure(run, step, graphdef, state, val_batches, val_kp) -> None:
+    from nmjax import viz
+
+    affinity = np.asarray(model_of(graphdef, state).affinity())
+    viz.plot_keypoints(
+        run / "figures" / f"keypoints_{step:07d}.png",
+        val_batches[0]["voxels"][0, 0],
+        val_kp[0, 0, 0],
+        affinity,
+        title=f"step {step}",
+    )
+
+
+# --- artefacts for the later stages (contract C10) ---------------------------------------------
+
+
+def write_artifacts(run: Path, graphdef: Any, state: Any, val_batches, steps: Steps) -> None:
+    """affinity.npy, keypoint_stats.npz, then skeleton.json and keypoints_{train,test}.npz."""
+    model = model_of(graphdef, state)
+    io.save_npy(run / "affinity.npy", np.asarray(model.affinity(), np.float32))
+    _, keypoints = validate(steps, state, val_batches)
+    flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
+    io.save_npz(
+        run / "keypoint_stats.npz",
+        intensities=flat[:, :, 3].mean(axis=0).astype(np.float32),
+        rest_positions=flat[:, :, :3].mean(axis=0).astype(np.float32),
+        example_voxels=np.asarray(val_batches[0]["voxels"][0, 0], np.float32),
+        example_keypoints=keypoints[0, 0, 0].astype(np.float32),
+    )
+    try:
+        from nmjax.skeleton_cli import extract_run_skeleton
+
+        extract_run_skeleton(run)
+    except Exception as err:  # the skeleton stage is separate; training results stay valid
+        print(
+            f"train-skel: skeleton extraction failed ({type(err).__name__}: {err}); run "
+            f"`nmjax extract-skeleton --run {run}` once fixed",
+            file=sys.stderr,
+        )
+    for split in ("train", "test"):
+        export_keypoints(run, split, model=model)
+
+
+def load_detector(run_dir: str | Path, step: int | None = None):
+    """The trained detector of a phase-1 run: (model, cfg).
+
+    Restores `step`, else the best checkpoint by validation loss, else the latest.
+    """
+    run = Path(run_dir)
+    cfg = common.load_config(run, SkelTrainConfig)
+    graphdef, state = build(cfg)
+    ckpt = common.Checkpointer(run / "checkpoints", cfg.keep_checkpoints, best_metric=BEST_METRIC)
+    try:
+        if step is None:
+            step = ckpt.best_step() or ckpt.latest_step()
+        _, state = ckpt.restore(abstract_state(state), step=step)
+    finally:
+        ckpt.close()
+    return model_of(graphdef, state), cfg
+
+
+def sequence_windows(voxels: np.ndarray, frames: int) -> np.ndarray:
+    """(S, G, G, G) -> (ceil(S / T), T, G, G, G); the last window padded with the last frame."""
+    s = voxels.shape[0]
+    windows = -(-s // frames)
+    pad = windows * frames - s
+    if pad:
+        voxels = np.concatenate([voxels, np.repeat(voxels[-1:], pad, axis=0)], axis=0)
+    return voxels.reshape(windows, frames, *voxels.shape[1:])
+
+
+def export_keypoints(
+    run_dir: str | Path, split: str, *, model: KeypointDetector | None = None
+) -> Path:
+    """Writes `<run>/keypoints_<split>.npz`: one (S, K, 4) array per sequence of the split.
+
+    Each whole sequence (every `sample_rate`-th frame) is normalised with one bounding box
+    (DESIGN section 4), voxelised, cut into consecutive windows of T frames (the last padded by
+    repeating the last frame) and run through the detector in jit-compiled batches of B windows.
+    """
+    from nmjax.data.datasets import load_sequences
+    from nmjax.data.voxelize import normalize_sequence, voxelize
+
+    run = Path(run_dir)
+    cfg = common.load_config(run, SkelTrainConfig)
+    if model is None:
+        model, cfg = load_detector(run)
+    graphdef, state = nnx.split(model)
+
+    @jax.jit
+    def detect(state, voxels):
+        return nnx.merge(graphdef, state).detect(voxels)[1]
+
+    t, b = cfg.data.frames, cfg.data.batch_size
+    arrays = {}
+    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
+        points = np.asarray(seq.vertices[:: cfg.data.sample_rate], np.float32)
+        points, _ = normalize_sequence(points)
+        windows = sequence_windows(voxelize(points, cfg.data.grid), t)
+        n = windows.shape[0]
+        padded = -(-n // b) * b  # whole batches: one compiled shape
+        if padded > n:
+            windows = np.concatenate([windows, np.repeat(windows[-1:], padded - n, axis=0)])
+        chunks = [
+            np.asarray(detect(state, jnp.asarray(windows[i : i + b]))) for i in range(0, padded, b)
+        ]
+        keypoints = np.concatenate(chunks).reshape(-1, *chunks[0].shape[2:])
+        arrays[seq.name] = keypoints[: points.shape[0]].astype(np.float32)
+    path = run / f"keypoints_{split}.npz"
+    io.save_npz(path, **arrays)
+    return path
+
+
+# --- command line ------------------------------------------------------------------------------
+
+
+def parse_args(argv: Sequence[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="nmjax train-skel",
+        description="Phase 1: train the keypoint detector and affinity (paper Eq. 23).",
+    )
+    parser.add_argument("--data", default="synth-hand", help=f"one of {', '.join(DATASETS)}")
+    parser.add_argument("--preset", default="default", choices=PRESETS)
+    parser.add_argument("--steps", type=int, default=None, help="total optimizer steps")
+    parser.add_argument("--run", default=None, help="run folder (default runs/skel-DATA-STAMP)")
+    parser.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing --run")
+    parser.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="FIELD=VALUE",
+        help="override any config field, e.g. --set model.channels=16 --set weights.vol=1.0",
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return parser.parse_args(list(argv))
+
+
+def config_from_args(args: argparse.Namespace) -> SkelTrainConfig:
+    """The preset (or, with --resume, the run's saved config) plus the command-line overrides."""
+    if args.resume:
+        if args.run is None:
+            raise ValueError("--resume needs --run DIR (the run folder to continue)")
+        cfg = common.load_config(args.run, SkelTrainConfig)
+    else:
+        dataset_spec(args.data)  # unknown names list the valid ones
+        cfg = skel_preset(args.data, args.preset)
+    if args.root is not None:
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
+    cfg = apply_overrides(cfg, args.overrides)
+    if args.steps is not None:
+        cfg = dataclasses.replace(cfg, steps=args.steps)
+    if args.run is not None:
+        cfg = dataclasses.replace(cfg, run=str(args.run))
+    check_config(cfg)
+    return cfg
+
+
+def main(argv: Sequence[str]) -> int:
+    args = parse_args(argv)
+    try:
+        cfg = config_from_args(args)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"train-skel: {err}", file=sys.stderr)
+        return 2
+    run = Path(cfg.run) if cfg.run else default_run_dir(cfg.data.name)
+    try:
+        summary = train(
+            cfg, run, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
+        )
+    except (ValueError, FileNotFoundError, NonFiniteLossError) as err:
+        print(f"train-skel: {err}", file=sys.stderr)
+        return 1
+    print(json.dumps(summary, indent=1, default=float))
+    return 0

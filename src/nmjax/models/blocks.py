@@ -15,6 +15,7 @@ import math
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 
 from nmjax.keypoints import coord_grid
@@ -28,19 +29,23 @@ def num_groups(channels: int) -> int:
 
 
 _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
+# Inputs smaller than this (elements) use XLA's 3D convolution: fast enough there, and it
+# compiles to fewer operations.
+SLICED_CONV_MIN_SIZE = 1 << 18
 _NHWC = ("NHWC", "HWIO", "NHWC")
 
 
 def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """Stride-1 'SAME' 3D convolution (cross-correlation) of x (B,X,Y,Z,Ci) with (k,k,k,Ci,Co).
 
-    Odd k only. On CPU: sum over the k offsets along X of 2D convolutions over (Y, Z), with X
-    folded into the batch axis (a fixed loop over kernel taps, not over data).
+    Odd k only. On CPU, for inputs of at least `SLICED_CONV_MIN_SIZE` elements: sum over the k
+    offsets along X of 2D convolutions over (Y, Z), with X folded into the batch axis (a fixed
+    loop over kernel taps, not over data).
     """
     k = kernel.shape[0]
     if k % 2 == 0:
         raise ValueError(f"conv3d_same needs an odd kernel size, got {k}")
-    if jax.default_backend() != "cpu":
+    if jax.default_backend() != "cpu" or x.size < SLICED_CONV_MIN_SIZE:
         return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
     b, nx, ny, nz, ci = x.shape
     p = k // 2
@@ -68,6 +73,25 @@ def depth_to_space(x: jax.Array) -> jax.Array:
     return x.reshape(b, 2 * nx, 2 * ny, 2 * nz, c)
 
 
+def lecun_normal(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
+    """LeCun-normal (truncated at 2 std, fan-in over all but the last axis) weights, drawn with
+    NumPy from a seed taken from `key`.
+
+    Same distribution as `nnx.initializers.lecun_normal()`; jax.random would compile one sampler
+    per distinct weight shape, which dominated model construction time on CPU.
+    """
+    seed = np.asarray(jax.random.key_data(key)).ravel().tolist()
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(shape)
+    bad = np.abs(w) > 2.0
+    while bad.any():  # resample outside [-2, 2]: a truncated normal
+        w[bad] = rng.standard_normal(int(bad.sum()))
+        bad = np.abs(w) > 2.0
+    fan_in = int(np.prod(shape[:-1]))
+    std = np.sqrt(1.0 / fan_in) / 0.87962566103423978  # std of the unit normal truncated at 2
+    return jnp.asarray(w * std, jnp.float32)
+
+
 class Conv3D(nnx.Module):
     """3D convolution, channels-last, 'SAME' padding, kernel (k,k,k,in,out) and bias.
 
@@ -93,9 +117,8 @@ class Conv3D(nnx.Module):
         if transpose and (kernel, stride) != (2, 2):
             raise ValueError("Conv3D: transposed convolution only with kernel = stride = 2")
         self.kernel_size, self.stride, self.transpose = kernel, stride, transpose
-        init = nnx.initializers.lecun_normal()
         shape = (kernel, kernel, kernel, in_ch, out_ch)
-        self.kernel = nnx.Param(init(rngs.params(), shape, jnp.float32))
+        self.kernel = nnx.Param(lecun_normal(rngs.params(), shape))
         self.bias = nnx.Param(jnp.zeros((out_ch,), jnp.float32))
 
     def __call__(self, x: jax.Array) -> jax.Array:

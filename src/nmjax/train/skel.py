@@ -144,7 +144,7 @@ class Steps:
 
         (loss, terms), grads = nnx.value_and_grad(loss_fn, has_aux=True)(model)
         optimizer.update(model, grads)
-        scalars = {"loss": loss, "grad_norm": optax.global_norm(grads), **terms}
+        scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms}
         return nnx.state((model, optimizer)), scalars
 
     def _eval(self, state: Any, voxels: jax.Array) -> tuple[dict[str, jax.Array], jax.Array]:
@@ -152,6 +152,23 @@ class Steps:
         out = model(voxels)
         loss, terms = losses.skeleton_loss(out, self.weights)
         return {"loss": loss, **terms}, out["keypoints"]
+
+
+_STEPS_CACHE: dict[tuple[Any, ...], Steps] = {}
+
+
+def get_steps(graphdef: Any, cfg: SkelTrainConfig) -> Steps:
+    """The compiled steps of this configuration, shared within a process (a second run in the
+    same process, e.g. a resume in a notebook or a test, compiles nothing).
+
+    Keyed by everything that shapes the graph: model, loss weights and optimizer settings; states
+    built from the same settings merge with the first run's graphdef.
+    """
+    key = (cfg.model, cfg.weights, cfg.learning_rate, cfg.lr_milestones, cfg.lr_decay)
+    key += (cfg.clip_norm,)
+    if key not in _STEPS_CACHE:
+        _STEPS_CACHE[key] = Steps(graphdef, cfg)
+    return _STEPS_CACHE[key]
 
 
 def model_of(graphdef: Any, state: Any) -> KeypointDetector:
@@ -215,7 +232,8 @@ def train(
       overwrite: replace an existing `run_dir`.
       finalize: write affinity.npy, keypoint_stats.npz, skeleton.json, keypoints_*.npz at the end.
       progress: show a tqdm bar.
-      step_hook: test hook `(step, state) -> state` applied after each step.
+      step_hook: test hook `(step, state) -> state` applied before each step (step = steps
+        done so far).
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the message gives the step, and the last good
@@ -228,7 +246,8 @@ def train(
     check_config(cfg)
     run = common.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     graphdef, state = build(cfg)
-    steps = Steps(graphdef, cfg)
+    steps = get_steps(graphdef, cfg)
+    graphdef = steps.graphdef
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
     ckpt = common.Checkpointer(run / "checkpoints", cfg.keep_checkpoints, best_metric=BEST_METRIC)
@@ -248,10 +267,10 @@ def train(
         step = start
         while step < cfg.steps:
             batch = next(data_iter)
-            state, scalars = steps.train(state, jnp.asarray(batch["voxels"]))
-            step += 1
             if step_hook is not None:
                 state = step_hook(step, state)
+            state, scalars = steps.train(state, jnp.asarray(batch["voxels"]))
+            step += 1
             loss = float(scalars["loss"])
             if not math.isfinite(loss):
                 raise NonFiniteLossError(

@@ -1,0 +1,159 @@
+"""Tests of the keypoint detector and its 3D blocks (nmjax.models.blocks, nmjax.models.detector)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from nmjax.config import skel_preset
+from nmjax.models import blocks
+from nmjax.models.detector import KeypointDetector, check_detector_config
+
+
+def _reference_conv_same(x, w):
+    """NumPy 'SAME' stride-1 cross-correlation, x (B,X,Y,Z,Ci), w (k,k,k,Ci,Co)."""
+    k = w.shape[0]
+    p = k // 2
+    xp = np.pad(x, ((0, 0), (p, p), (p, p), (p, p), (0, 0)))
+    nx, ny, nz = x.shape[1:4]
+    out = np.zeros((*x.shape[:4], w.shape[-1]))
+    for a in range(k):
+        for b in range(k):
+            for c in range(k):
+                window = xp[:, a : a + nx, b : b + ny, c : c + nz]
+                out += np.einsum("...i,io->...o", window, w[a, b, c])
+    return out
+
+
+@pytest.mark.parametrize("kernel", [1, 3, 5])
+@pytest.mark.parametrize("sliced", [False, True])
+def test_conv3d_same_matches_numpy(kernel, sliced, monkeypatch):
+    if sliced:
+        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
+    conv = blocks.Conv3D(2, 3, kernel, rngs=nnx.Rngs(0))
+    conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
+    x = np.random.default_rng(1).normal(size=(2, 6, 5, 4, 2)).astype(np.float32)
+    expected = _reference_conv_same(x, np.asarray(conv.kernel[...])) + [0.5, -1.0, 2.0]
+    np.testing.assert_allclose(conv(jnp.asarray(x)), expected, atol=1e-4)
+
+
+def test_strided_pool_and_transposed_conv_match_definitions():
+    rng = np.random.default_rng(2)
+    x = rng.normal(size=(1, 4, 6, 2, 3)).astype(np.float32)
+    pool = blocks.Conv3D(3, 5, 2, 2, rngs=nnx.Rngs(0))
+    w = np.asarray(pool.kernel[...])
+    expected = np.zeros((1, 2, 3, 1, 5))
+    for i, j, k in np.ndindex(2, 3, 1):
+        block = x[0, 2 * i : 2 * i + 2, 2 * j : 2 * j + 2, 2 * k : 2 * k + 2]  # (2,2,2,3)
+        expected[0, i, j, k] = np.einsum("abci,abcio->o", block, w)
+    np.testing.assert_allclose(pool(jnp.asarray(x)), expected, atol=1e-5)
+
+    up = blocks.Conv3D(3, 5, 2, 2, transpose=True, rngs=nnx.Rngs(1))
+    w = np.asarray(up.kernel[...])
+    expected = np.zeros((1, 8, 12, 4, 5))
+    for i, j, k in np.ndindex(4, 6, 2):  # every input cell paints its own 2x2x2 output block
+        expected[0, 2 * i : 2 * i + 2, 2 * j : 2 * j + 2, 2 * k : 2 * k + 2] = np.einsum(
+            "i,abcio->abco", x[0, i, j, k], w
+        )
+    np.testing.assert_allclose(up(jnp.asarray(x)), expected, atol=1e-5)
+    # Also the adjoint of the strided conv with the same kernel, as a transposed conv must be.
+    y = rng.normal(size=(1, 2, 3, 1, 3)).astype(np.float32)
+    down = blocks.Conv3D(3, 3, 2, 2, rngs=nnx.Rngs(3))
+    upt = blocks.Conv3D(3, 3, 2, 2, transpose=True, rngs=nnx.Rngs(3))
+    upt.kernel[...] = jnp.swapaxes(down.kernel[...], -1, -2)
+    lhs = jnp.vdot(down(jnp.asarray(x)) - down.bias[...], y)
+    rhs = jnp.vdot(jnp.asarray(x), upt(jnp.asarray(y)) - upt.bias[...])
+    assert float(lhs) == pytest.approx(float(rhs), rel=1e-4)
+
+
+def test_lecun_normal_statistics():
+    w = np.asarray(blocks.lecun_normal(jax.random.key(0), (3, 3, 3, 20, 400)))
+    assert np.abs(w).max() <= 2.0 / np.sqrt(540) / 0.8796 + 1e-6
+    assert w.std() == pytest.approx(1.0 / np.sqrt(540), rel=0.02)
+    assert abs(w.mean()) < 1e-3
+
+
+def test_hourglass_levels():
+    assert blocks.hourglass_levels(16, 3) == 3
+    assert blocks.hourglass_levels(8, 3) == 3
+    assert blocks.hourglass_levels(4, 3) == 2
+    assert blocks.hourglass_levels(6, 3) == 1
+    assert blocks.hourglass_levels(2, 0) == 0
+
+
+@pytest.fixture(scope="module")
+def tiny_outputs():
+    cfg = skel_preset("synth-arm", "tiny")
+    model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
+    b, t, g = cfg.data.batch_size, cfg.data.frames, cfg.model.grid
+    voxels = (jax.random.uniform(jax.random.key(1), (b, t, g, g, g)) > 0.8).astype(jnp.float32)
+    return cfg, model, voxels, model(voxels)
+
+
+def test_detector_output_shapes_and_ranges(tiny_outputs):
+    cfg, _, voxels, out = tiny_outputs
+    b, t, g = cfg.data.batch_size, cfg.data.frames, cfg.model.grid
+    k, n = cfg.model.num_keypoints, cfg.model.num_affinity
+    h = g // 4
+    assert out["voxels"].shape == (b, t, g, g, g)
+    assert out["recon"].shape == (b, t, g, g, g)
+    assert out["heatmaps"].shape == (b, t, h, h, h, k)
+    assert out["keypoints"].shape == (b, t, k, 4)
+    assert out["affinity"].shape == (n, k, k)
+    assert all(v.dtype == jnp.float32 for v in out.values())
+    recon = np.asarray(out["recon"])
+    assert np.all((recon >= 0) & (recon <= 1))
+    assert np.all(np.asarray(out["heatmaps"]) > 0)  # softplus
+    kp = np.asarray(out["keypoints"])
+    assert np.all(np.abs(kp[..., :3]) <= 1.0 + 1e-6)
+    assert np.all((kp[..., 3] >= 0) & (kp[..., 3] <= 1 + 1e-6))
+    np.testing.assert_allclose(kp[..., 3].max(axis=-1), 1.0, atol=1e-4)
+    # Affinity parameters start at ones: every off-diagonal entry is 1 / (K - 1).
+    aff = np.asarray(out["affinity"])
+    expected = (np.ones((k, k)) - np.eye(k)) / (k - 1)
+    np.testing.assert_allclose(aff, np.broadcast_to(expected, aff.shape), atol=1e-6)
+
+
+def test_decoder_is_relative_to_first_frame(tiny_outputs):
+    cfg, model, voxels, _ = tiny_outputs
+    model = nnx.clone(model)
+    model.decoder.out.kernel[...] = jnp.zeros_like(model.decoder.out.kernel[...])
+    model.decoder.out.bias[...] = jnp.zeros_like(model.decoder.out.bias[...])
+    recon = np.asarray(model(voxels)["recon"])
+    # raw = 0 -> v_hat_t = sigmoid(10 (v_1 - 0.5)) for every frame t (Eq. 7 with tanh(0) = 0).
+    v1 = np.asarray(voxels[:, :1])
+    expected = 1.0 / (1.0 + np.exp(-cfg.model.decoder_sharpness * (v1 - 0.5)))
+    np.testing.assert_allclose(recon, np.broadcast_to(expected, recon.shape), atol=1e-6)
+
+
+def test_frames_are_independent_except_through_temporal_mean(tiny_outputs):
+    _, model, voxels, out = tiny_outputs
+    # Swapping two frames (t >= 1) keeps the temporal mean and frame 1: outputs swap with them.
+    perm = np.arange(voxels.shape[1])
+    perm[[1, 2]] = perm[[2, 1]]
+    swapped = model(voxels[:, perm])
+    np.testing.assert_allclose(swapped["keypoints"], out["keypoints"][:, perm], atol=1e-5)
+    np.testing.assert_allclose(swapped["recon"], out["recon"][:, perm], atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [("num_keypoints", 1, "num_keypoints"), ("grid", 18, "multiple of 4"), ("channels", 2, "C")],
+)
+def test_bad_detector_config(field, value, match):
+    cfg = dataclasses.replace(skel_preset("synth-arm", "tiny").model, **{field: value})
+    with pytest.raises(ValueError, match=match):
+        check_detector_config(cfg)
+    with pytest.raises(ValueError, match=match):
+        KeypointDetector(cfg, rngs=nnx.Rngs(0))
+
+
+def test_detector_rejects_wrong_voxel_shape(tiny_outputs):
+    _, model, voxels, _ = tiny_outputs
+    with pytest.raises(ValueError, match="expected voxels"):
+        model(voxels[..., :-1])

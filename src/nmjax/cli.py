@@ -14,6 +14,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train-skel": ("nmjax.train.skel", "phase 1: train the keypoint detector and affinity"),
     "extract-skeleton": ("nmjax.skeleton_cli", "turn a phase-1 run's affinity into skeleton.json"),
     "train-dyn": ("nmjax.train.dyn", "phase 2: train the VRNN dynamics on a phase-1 run"),
+    "generate": ("nmjax.commands.generate", "sample future motion from a phase-2 run"),
+    "interpolate": (
+        "nmjax.commands.interpolate",
+        "interpolate between two keyframes, with baselines",
+    ),
+    "retarget": ("nmjax.commands.retarget", "retarget a test motion onto a mesh (Eqs. 24-25, LBS)"),
+    "evaluate": ("nmjax.evaluate", "SC-score, 4D-tracking Chamfer, interpolation M-CD"),
 }
 
 

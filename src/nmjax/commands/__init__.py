@@ -1,0 +1,1 @@
+"""One module per task subcommand of `nmjax` (the dispatcher calls `<module>.main(argv)`)."""

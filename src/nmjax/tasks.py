@@ -1,0 +1,369 @@
+"""What the learned model is for (paper Sec. 5, appendix A.4 and D.4; DESIGN section 9).
+
+- Motion generation: T_cond posterior steps, then prior samples to T_cond + T_gen frames, several
+  samples per input (`generate_motion`).
+- Motion interpolation between keyframes x_ts and x_te: the posterior at x_ts, then the prior
+  rolled over the gap for several trajectories, keeping the one that ends closest to x_te
+  (`interpolate_motion`), next to the non-generative baselines Lerp (joint positions,
+  `lerp_keypoints`) and Slerp (local rotations inferred by the model, `slerp_keypoints`). The
+  positional VRNN baseline is `interpolate_motion` with a `Dynamics` of kind "vrnn".
+- Motion retargeting (Eqs. 24-25): source local rotations with target bone offsets
+  (`retarget_joints`), skin weights (Algorithm 2, `nmjax.skeleton.skin_weights`) and linear blend
+  skinning of a target mesh (`retarget_vertices`); `load_mesh` validates a user's mesh.
+
+The array functions are pure and jit-able; sampling is vmapped over trajectories. In every
+interpolation result the two keyframes are the given ones: the methods differ only in the frames
+between them.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from nmjax import geometry
+from nmjax.models.dynamics import Dynamics, bone_lengths
+
+# --- generation -----------------------------------------------------------------------------
+
+
+def generate_motion(
+    model: Dynamics, x_cond: jax.Array, num_frames: int, key: jax.Array, num_samples: int
+) -> tuple[jax.Array, jax.Array]:
+    """Motion generation (Sec. 5): several futures of each conditioning sequence.
+
+    Args:
+      model: trained dynamics module ("nm" or "vrnn").
+      x_cond: (B, T_cond, K, 4) observed keypoints.
+      num_frames: T_gen, frames sampled from the prior after the observed ones (static).
+      key: PRNG key; one sub-key per sample.
+      num_samples: S, independent futures per input (static), drawn under `vmap`.
+
+    Returns:
+      keypoints (B, S, T_cond + T_gen, K, 4) and local rotations (B, S, T_cond + T_gen, K, 3, 3)
+      (identity for "vrnn"); the first T_cond frames are posterior reconstructions.
+    """
+    keys = jax.random.split(key, num_samples)
+    kp, rot = jax.vmap(lambda k: model.generate(x_cond, num_frames, k))(keys)  # (S, B, ...)
+    return jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)
+
+
+# --- interpolation --------------------------------------------------------------------------
+
+
+def interpolate_motion(
+    model: Dynamics,
+    x_start: jax.Array,
+    x_end: jax.Array,
+    gap: int,
+    key: jax.Array,
+    num_trajectories: int,
+) -> jax.Array:
+    """Generative interpolation (Sec. 5, Motion Interpolation) between two keyframes.
+
+    z is drawn from the posterior at the start keyframe (after any earlier context frames), then
+    the prior is rolled for `gap` frames; of `num_trajectories` rollouts (vmapped) the one whose
+    last frame has the smallest squared xyz distance to `x_end` is kept.
+
+    Args:
+      model: dynamics module ("nm": Neural Marionette; "vrnn": the positional baseline).
+      x_start: (B, C, K, 4) observed frames ending with the start keyframe x_ts (C = 1 is the
+        paper's setting).
+      x_end: (B, K, 4) the end keyframe x_te.
+      gap: te - ts, the number of frames generated after x_ts (static, >= 1).
+      key: PRNG key.
+      num_trajectories: rollouts to choose from (static).
+
+    Returns:
+      (B, gap + 1, K, 4): x_ts, the gap - 1 generated in-between frames, then x_te.
+    """
+    keys = jax.random.split(key, num_trajectories)
+    kp, _ = jax.vmap(lambda k: model.generate(x_start, gap, k))(keys)  # (N, B, C + gap, K, 4)
+    rollout = kp[:, :, x_start.shape[1] :]  # (N, B, gap, K, 4)
+    error = jnp.sum(jnp.square(rollout[:, :, -1, :, :3] - x_end[None, :, :, :3]), axis=(-2, -1))
+    best = jnp.argmin(error, axis=0)  # (B,)
+    chosen = jnp.take_along_axis(rollout, best[None, :, None, None, None], axis=0)[0]
+    return jnp.concatenate([x_start[:, -1:], chosen[:, :-1], x_end[:, None]], axis=1)
+
+
+def interpolation_weights(gap: int) -> jax.Array:
+    """(gap + 1,) parameters s = 0, 1/gap, ..., 1 of the frames ts..te."""
+    return jnp.arange(gap + 1, dtype=jnp.float32) / gap
+
+
+def lerp_keypoints(x_start: jax.Array, x_end: jax.Array, gap: int) -> jax.Array:
+    """Lerp baseline: joint positions (and intensities) linearly interpolated.
+
+    Args:
+      x_start, x_end: (..., K, 4) keyframes.
+      gap: te - ts (static, >= 1).
+
+    Returns:
+      (..., gap + 1, K, 4), frame i = (1 - i/gap) x_start + (i/gap) x_end.
+    """
+    s = interpolation_weights(gap)[:, None, None]
+    return (1.0 - s) * x_start[..., None, :, :] + s * x_end[..., None, :, :]
+
+
+def infer_rotations(
+    model: Dynamics, x: jax.Array, key: jax.Array, samples: int | None = None
+) -> tuple[jax.Array, jax.Array]:
+    """Local rotations and root positions the model infers for observed keypoints.
+
+    Best-of-S posterior reconstruction (the training rule), bone lengths measured on `x`.
+
+    Args:
+      model: an "nm" dynamics module.
+      x: (B, T, K, 4) keypoints.
+      key: PRNG key.
+      samples: S; default the model's.
+
+    Returns:
+      local rotations (B, T, K, 3, 3) and reconstructed keypoints (B, T, K, 4).
+    """
+    out = model(x, key, samples=samples)
+    return out.rotations, out.keypoints
+
+
+def slerp_keypoints(
+    model: Dynamics, x_start: jax.Array, x_end: jax.Array, gap: int, key: jax.Array
+) -> jax.Array:
+    """Slerp baseline: local rotations inferred by Neural Marionette, spherically interpolated.
+
+    The model reconstructs the two keyframes as one observed pair (best-of-S posterior), giving
+    local rotations R_ts, R_te; every in-between frame uses slerp(R_ts, R_te, s) for each joint,
+    the linearly interpolated root position and intensities, and forward kinematics (Eq. 2) with
+    the model's offsets (Eq. 20, bone lengths measured on the keyframes).
+
+    Args:
+      model: an "nm" dynamics module.
+      x_start, x_end: (B, K, 4) keyframes.
+      gap: te - ts (static, >= 1).
+      key: PRNG key of the posterior samples.
+
+    Returns:
+      (B, gap + 1, K, 4) with the given keyframes at both ends.
+    """
+    pair = jnp.stack([x_start, x_end], axis=1)  # (B, 2, K, 4)
+    rotations, _ = infer_rotations(model, pair, key)
+    s = interpolation_weights(gap)  # (F,)
+    local = geometry.slerp_matrices(
+        rotations[:, None, 0], rotations[:, None, 1], s[None, :, None]
+    )  # (B, F, K, 3, 3)
+    lerped = lerp_keypoints(x_start, x_end, gap)  # (B, F, K, 4)
+    root = model.order[0]
+    offsets = model.offsets(bone_lengths(pair, model.parents))  # (B, K, 3)
+    b, f, k = local.shape[:3]
+    mu = geometry.forward_kinematics(
+        lerped[..., root, :3].reshape(-1, 3),
+        local.reshape(-1, k, 3, 3),
+        jnp.broadcast_to(offsets[:, None], (b, f, k, 3)).reshape(-1, k, 3),
+        model.parents,
+        model.order,
+    ).reshape(b, f, k, 3)
+    inner = jnp.concatenate([mu, lerped[..., 3:]], axis=-1)
+    return jnp.concatenate([x_start[:, None], inner[:, 1:-1], x_end[:, None]], axis=1)
+
+
+# --- compiled entry points (the model is split once; graphdef is static) ---------------------
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "num_frames", "num_samples"))
+def generate_jit(graphdef, state, x_cond, key, *, num_frames: int, num_samples: int):
+    """`generate_motion` on a split model (nnx.split)."""
+    return generate_motion(nnx.merge(graphdef, state), x_cond, num_frames, key, num_samples)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "gap", "num_trajectories"))
+def interpolate_jit(graphdef, state, x_start, x_end, key, *, gap: int, num_trajectories: int):
+    """`interpolate_motion` on a split model."""
+    model = nnx.merge(graphdef, state)
+    return interpolate_motion(model, x_start, x_end, gap, key, num_trajectories)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef", "gap"))
+def slerp_jit(graphdef, state, x_start, x_end, key, *, gap: int):
+    """`slerp_keypoints` on a split model."""
+    return slerp_keypoints(nnx.merge(graphdef, state), x_start, x_end, gap, key)
+
+
+@functools.partial(jax.jit, static_argnames=("graphdef",))
+def infer_rotations_jit(graphdef, state, x, key):
+    """`infer_rotations` on a split model."""
+    return infer_rotations(nnx.merge(graphdef, state), x, key)
+
+
+# --- retargeting (Eqs. 24-25, appendix A.4 and D.4) -----------------------------------------
+
+
+def retarget_joints(
+    root_positions: jax.Array,
+    local_rotations: jax.Array,
+    directions: jax.Array,
+    target_joints: jax.Array,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+) -> tuple[jax.Array, jax.Array]:
+    """Eqs. 24-25: the source's local rotations on the target's bones.
+
+    mu^re_k,t = mu^re_parent(k),t + R^src_k,t d^tar_k with d^tar_k = d-bar_k ||mu^tar_k -
+    mu^tar_parent(k)|| (Eq. 25), R^src the global rotations accumulated from the source's local
+    rotations along the tree (Eq. 2).
+
+    Args:
+      root_positions: (T, 3) root trajectory of the retargeted motion.
+      local_rotations: (T, K, 3, 3) source local rotations.
+      directions: (K, 3) the offset directions d-bar_k shared by source and target.
+      target_joints: (K, 3) target joint positions (one pose).
+      parents, order: the skeleton (static).
+
+    Returns:
+      joint positions (T, K, 3) and global rotations (T, K, 3, 3).
+    """
+    offsets = geometry.bone_offsets(target_joints, parents, directions)  # (K, 3), Eq. 25
+    return geometry.forward_kinematics_with_rotations(
+        root_positions, local_rotations, offsets, parents, order
+    )
+
+
+def align_rotation(u: jax.Array, v: jax.Array) -> jax.Array:
+    """The smallest rotation taking unit vectors u to v: (..., 3), (..., 3) -> (..., 3, 3).
+
+    Rodrigues' formula about u x v; antiparallel inputs turn by pi about an axis normal to u.
+    """
+    u, v = geometry.normalize(u), geometry.normalize(v)
+    c = jnp.sum(u * v, axis=-1)[..., None, None]
+    axis = jnp.cross(u, v)
+    # For u = -v any axis normal to u works: u x e_x, or u x e_y when u is along x.
+    fallback = jnp.cross(u, jnp.where(jnp.abs(u[..., :1]) < 0.9, jnp.eye(3)[0], jnp.eye(3)[1]))
+    anti = (c[..., 0, 0] < -1.0 + 1e-6)[..., None]
+    axis = jnp.where(anti, geometry.normalize(fallback), axis)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    zero = jnp.zeros_like(x)
+    skew = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*x.shape, 3, 3)
+    eye = jnp.eye(3)
+    general = eye + skew + skew @ skew / (1.0 + jnp.where(anti[..., None], 0.0, c))
+    flip = 2.0 * axis[..., :, None] * axis[..., None, :] - eye  # rotation by pi about `axis`
+    return jnp.where(anti[..., None], flip, general)
+
+
+def rest_rotations(
+    joints: jax.Array,
+    rotations: jax.Array,
+    directions: jax.Array,
+    parents: tuple[int, ...],
+) -> jax.Array:
+    """Global rotations of a pose made consistent with its joints: R_k d-bar_k || mu_k - mu_p.
+
+    An estimate R_k (e.g. the model's posterior rotations of the target) is corrected by the
+    smallest rotation turning R_k d-bar_k onto the observed bone direction mu_k - mu_parent(k),
+    keeping the estimate's twist about the bone; the root keeps its estimate. With these, a
+    point on bone k that moves with joint k's transform stays on the retargeted bone.
+
+    Args:
+      joints: (K, 3) joint positions of the pose.
+      rotations: (K, 3, 3) estimated global rotations.
+      directions: (K, 3) d-bar_k.
+      parents: (K,) the skeleton.
+
+    Returns:
+      (K, 3, 3) global rotations.
+    """
+    par = np.asarray(parents)
+    bones = joints - joints[par]
+    predicted = jnp.einsum("kij,kj->ki", rotations, geometry.normalize(directions))
+    fix = align_rotation(predicted, bones)
+    is_root = jnp.asarray(par == np.arange(len(par)))[:, None, None]
+    return jnp.where(is_root, rotations, fix @ rotations)
+
+
+def retarget_vertices(
+    vertices: jax.Array,
+    weights: jax.Array,
+    rest_joints: jax.Array,
+    rest_rots: jax.Array,
+    joints: jax.Array,
+    rotations: jax.Array,
+) -> jax.Array:
+    """Linear blend skinning of a target mesh onto a retargeted motion (appendix A.4).
+
+    Joint k's transform maps the rest pose to frame t: v -> G_k,t G_k,rest^T (v - mu_k,rest) +
+    mu_k,t, so a vertex fully bound to k moves rigidly with k's bone.
+
+    Args:
+      vertices: (V, 3) target mesh in its rest pose.
+      weights: (V, K) skin weights (Algorithm 2).
+      rest_joints, rest_rots: (K, 3), (K, 3, 3) the target's joints and global rotations.
+      joints, rotations: (T, K, 3), (T, K, 3, 3) retargeted joints and global rotations.
+
+    Returns:
+      (T, V, 3) deformed vertices.
+    """
+    from nmjax.skeleton import linear_blend_skinning
+
+    rel = rotations @ jnp.swapaxes(rest_rots, -1, -2)  # (T, K, 3, 3)
+    trans = joints - jnp.einsum("tkij,kj->tki", rel, rest_joints)
+    return linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
+
+
+# --- meshes ---------------------------------------------------------------------------------
+
+
+def load_mesh(path: str | os.PathLike):
+    """Reads a target mesh (.obj, .ply, .off, .stl, ... anything trimesh reads) and checks it.
+
+    Watertight or not, one mesh or a scene (concatenated). Raises:
+      FileNotFoundError: no such file.
+      ValueError naming the file: unreadable, no vertices or faces, NaN / inf vertices.
+    """
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"target mesh {path} does not exist (--target)")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as err:  # trimesh raises many types for broken files
+        raise ValueError(
+            f"cannot read target mesh {path} ({type(err).__name__}: {err}); give an .obj, .ply, "
+            ".off or .stl mesh with vertices and faces"
+        ) from err
+    vertices = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), np.float64)
+    faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))))
+    if vertices.ndim != 2 or len(vertices) == 0:
+        raise ValueError(f"target mesh {path} has no vertices; give a non-empty mesh")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.sum(~np.all(np.isfinite(vertices), axis=1)))
+        raise ValueError(
+            f"target mesh {path} has {bad} vertices with NaN or inf coordinates; repair the file"
+        )
+    if faces.ndim != 2 or len(faces) == 0:
+        raise ValueError(
+            f"target mesh {path} has no faces (a point cloud?); retargeting samples points on the "
+            "surface and needs a triangle mesh"
+        )
+    if float(np.sum(mesh.area_faces)) <= 0.0:
+        raise ValueError(f"target mesh {path} has zero surface area; give a non-degenerate mesh")
+    return mesh
+
+
+def sample_mesh_points(mesh, count: int, seed: int = 0) -> np.ndarray:
+    """(count, 3) float32 points sampled uniformly on the mesh surface (fixed seed)."""
+    import trimesh
+
+    points, _ = trimesh.sample.sample_surface(mesh, count, seed=seed)
+    return np.asarray(points, np.float32)
+
+
+def normalization_of(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(bmin (3,), scale) of DESIGN section 4: p' = scale (p - bmin) - 1 for one pose."""
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    bmin = points.min(axis=0)
+    scale = 2.0 / (float(np.max(points.max(axis=0) - bmin)) + 1e-5)
+    return bmin, scale

@@ -5,7 +5,7 @@ stand-in: the generator's ground-truth joints (normalised per sequence with the 
 bounding box, alpha = 1) and its true parent tree, written in the C10 layout. The oracle measures
 the dynamics module alone; the result file says which input was used.
 
-    JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm --steps 2000
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm
 
 Writes experiments/results/train_dyn_<data>.json (configuration, final validation, steps/s,
 curves) and .png (training loss; validation reconstruction against "repeat the last pose";
@@ -103,9 +103,9 @@ def main() -> None:
     parser.add_argument("--data", default="synth-arm", choices=sorted(synthetic.BODIES))
     parser.add_argument("--skel-run", default=None, help="a phase-1 run (default: oracle input)")
     parser.add_argument("--preset", default="cpu")
-    parser.add_argument("--steps", type=int, default=2000)
+    parser.add_argument("--steps", type=int, default=6000)
     parser.add_argument("--models", nargs="+", default=["nm", "vrnn"])
-    parser.add_argument("--sequences", type=int, default=30)
+    parser.add_argument("--sequences", type=int, default=200)
     parser.add_argument("--workdir", default="runs/experiments")
     args = parser.parse_args()
 
@@ -147,7 +147,14 @@ def main() -> None:
     stem = RESULTS / f"train_dyn_{args.data}"
     io.write_json(
         stem.with_suffix(".json"),
-        {"data": args.data, "input": source, "preset": args.preset, **summary, "curves": runs},
+        {
+            "data": args.data,
+            "input": source,
+            "sequences": args.sequences if args.skel_run is None else None,
+            "preset": args.preset,
+            **summary,
+            "curves": runs,
+        },
     )
     plot_curves(stem.with_suffix(".png"), runs, f"phase 2 on {args.data} ({source})")
     print(f"wrote {stem}.json and {stem}.png")

@@ -68,8 +68,9 @@ def test_shapes(kind):
     assert bool(jnp.all(out.std_q >= dynamics.STD_EPS)) and bool(jnp.all(out.std_p > 0))
     keypoints, rotations = model.generate(x[:, :2], 4, jax.random.key(1))
     assert keypoints.shape == (2, 6, K, 4) and rotations.shape == (2, 6, K, 3, 3)
-    recon, _ = model.reconstruct(x, jax.random.key(2))
-    assert recon.shape == x.shape
+    if kind == "vrnn":  # same scan as __call__ (compiled once more per S)
+        recon, _ = model.reconstruct(x, jax.random.key(2))
+        assert recon.shape == x.shape
     alpha = out.keypoints[..., 3]
     if kind == "nm":
         assert bool(jnp.all((alpha >= 0) & (alpha <= 1)))
@@ -176,19 +177,6 @@ def test_generation_keeps_bone_lengths_and_is_finite():
     lengths = np.linalg.norm(keypoints[..., :3] - keypoints[..., PARENTS, :3], axis=-1)
     expected = np.asarray(bone_lengths(x, PARENTS))[:, None, :]
     np.testing.assert_allclose(lengths, np.broadcast_to(expected, lengths.shape), atol=1e-5)
-
-
-def test_gradients_are_finite_under_jit():
-    model = make_model("nm")
-    x = jnp.asarray(random_sequence(2, 3))
-
-    @nnx.jit
-    def grad(m):
-        return nnx.grad(lambda m: jnp.mean(m(x, jax.random.key(0)).keypoints ** 2))(m)
-
-    leaves = jax.tree.leaves(grad(model))
-    assert leaves and all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
-    assert any(float(jnp.abs(g).sum()) > 0 for g in leaves)
 
 
 def test_bad_configuration_is_refused():

@@ -173,7 +173,7 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
 
 
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
-    cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=2, val_every=2, log_every=1)
+    cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=4, val_every=4, log_every=1)
     run_full, hist_full = dyn.train(cfg, progress=False)
     half = dataclasses.replace(cfg, run=str(tmp_path / "half"), steps=2)
     dyn.train(half, progress=False)

@@ -136,10 +136,11 @@ def slerp_keypoints(
 ) -> jax.Array:
     """Slerp baseline: local rotations inferred by Neural Marionette, spherically interpolated.
 
-    The model reconstructs the two keyframes as one observed pair (best-of-S posterior), giving
-    local rotations R_ts, R_te; every in-between frame uses slerp(R_ts, R_te, s) for each joint,
-    the linearly interpolated root position and intensities, and forward kinematics (Eq. 2) with
-    the model's offsets (Eq. 20, bone lengths measured on the keyframes).
+    The model infers each keyframe's local rotations on its own (one observed frame from the
+    initial state, best-of-S posterior with the same key, bone lengths measured on the two
+    keyframes), so equal keyframes get equal rotations; every in-between frame uses
+    slerp(R_ts, R_te, s) per joint, the linearly interpolated root position and intensities,
+    and forward kinematics (Eq. 2) with the model's offsets (Eq. 20).
 
     Args:
       model: an "nm" dynamics module.
@@ -151,14 +152,18 @@ def slerp_keypoints(
       (B, gap + 1, K, 4) with the given keyframes at both ends.
     """
     pair = jnp.stack([x_start, x_end], axis=1)  # (B, 2, K, 4)
-    rotations, _ = infer_rotations(model, pair, key)
+    lengths = bone_lengths(pair, model.parents)  # (B, K)
+    r_start, r_end = (
+        model(x[:, None], key, lengths=lengths).rotations[:, 0] for x in pair.swapaxes(0, 1)
+    )
+    rotations = jnp.stack([r_start, r_end], axis=1)  # (B, 2, K, 3, 3)
     s = interpolation_weights(gap)  # (F,)
     local = geometry.slerp_matrices(
         rotations[:, None, 0], rotations[:, None, 1], s[None, :, None]
     )  # (B, F, K, 3, 3)
     lerped = lerp_keypoints(x_start, x_end, gap)  # (B, F, K, 4)
     root = model.order[0]
-    offsets = model.offsets(bone_lengths(pair, model.parents))  # (B, K, 3)
+    offsets = model.offsets(lengths)  # (B, K, 3)
     b, f, k = local.shape[:3]
     mu = geometry.forward_kinematics(
         lerped[..., root, :3].reshape(-1, 3),

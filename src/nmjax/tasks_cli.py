@@ -195,8 +195,8 @@ def run_generate(
         cond=np.int32(cond),
     )
     if voxels:
-        from nmjax.evaluate import Detector, sequence_voxels
         from nmjax.data.datasets import load_sequences
+        from nmjax.evaluate import Detector, sequence_voxels
 
         detector = Detector.load(skel_run)
         data = detector.cfg.data

@@ -265,6 +265,7 @@ def evaluate_interpolation(
     chunk: int = 4,
     seed: int = 0,
     split: str = "test",
+    methods: tuple[str, ...] = METHODS,
 ) -> dict[str, dict[str, dict]]:
     """M-CD (Eq. 22) x1e3 of every method at every sampling rate, per test sequence.
 
@@ -276,6 +277,8 @@ def evaluate_interpolation(
       max_segments: keyframe pairs per sequence and rate, spread over the sequence.
       chunk: keyframe pairs decoded at once (fixed, so each rate compiles once).
       seed: PRNG seed of the generative methods.
+      split: the split whose sequences are evaluated.
+      methods: the methods to run (VRNN is dropped when no VRNN model is given).
 
     Returns:
       {method: {str(SR): {"mean", "ci95", "n", "per_sequence"}}}; methods without a model left
@@ -284,7 +287,7 @@ def evaluate_interpolation(
     from nmjax.data.datasets import load_sequences
 
     cfg = detector.cfg
-    methods = [m for m in METHODS if m != "VRNN" or interpolators.vrnn is not None]
+    methods = [m for m in methods if m != "VRNN" or interpolators.vrnn is not None]
     per_seq: dict[str, dict[int, dict[str, float]]] = {m: {r: {} for r in rates} for m in methods}
     key = jax.random.key(seed)
     for seq in load_sequences(cfg.data.name, split, cfg.data.root):

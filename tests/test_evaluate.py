@@ -1,0 +1,105 @@
+"""Tests of nmjax.evaluate: statistics, M-CD on hand-made cases, and the command on a tiny run."""
+
+from __future__ import annotations
+
+import json
+import types
+
+import numpy as np
+import pytest
+from tiny_runs import PARENTS, make_runs
+
+from nmjax import evaluate, metrics
+from nmjax.data.voxelize import voxelize
+
+K = len(PARENTS)
+
+
+def test_confidence_interval_is_the_student_t_half_width():
+    # mean 2, sample std 1, n = 3: t_{0.975, 2} / sqrt(3) = 4.302653 / 1.732051
+    assert evaluate.confidence_interval([1.0, 2.0, 3.0]) == pytest.approx(2.484138, abs=1e-5)
+    assert np.isnan(evaluate.confidence_interval([5.0]))
+    summary = evaluate.summarize([1.0, float("nan"), 3.0])
+    assert summary["mean"] == 2.0 and summary["n"] == 2
+
+
+def test_keyframe_starts_fit_inside_the_sequence():
+    np.testing.assert_array_equal(evaluate.keyframe_starts(12, 3, 10), [0, 3, 6])
+    np.testing.assert_array_equal(evaluate.keyframe_starts(12, 5, 10), [0, 5])
+    assert len(evaluate.keyframe_starts(12, 12, 10)) == 0
+    assert list(evaluate.keyframe_starts(100, 3, 2)) == [0, 96]
+
+
+def test_identical_sequences_have_zero_motion_chamfer():
+    rng = np.random.default_rng(0)
+    v = (rng.random((4, 8, 8, 8)) > 0.7).astype(np.float32)
+    assert metrics.motion_chamfer(v, v) == pytest.approx(0.0, abs=1e-6)  # float32 round-off
+    assert metrics.motion_chamfer(v, v[::-1]) > 0.0
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    return make_runs(tmp_path_factory.mktemp("tiny-eval"))
+
+
+def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, monkeypatch):
+    """M-CD pipeline with a stand-in decoder that voxelises the keypoints themselves."""
+    from nmjax.config import SkelTrainConfig
+    from nmjax.data.datasets import load_sequences
+    from nmjax.train import common
+
+    cfg = common.load_config(runs["skel"], SkelTrainConfig)
+    grid = cfg.data.grid
+    (seq,) = load_sequences(cfg.data.name, "test", cfg.data.root)
+    t = np.arange(12, dtype=np.float32)[:, None, None]
+    start = np.random.default_rng(1).uniform(-0.8, 0.0, (1, K, 3)).astype(np.float32)
+    linear = np.concatenate([start + 0.06 * t, np.ones((12, K, 1), np.float32)], axis=-1)
+    curved = linear.copy()
+    curved[..., 2] += 0.5 * np.sin(t[..., 0] * 0.9)
+
+    def decode(keypoints, first_voxels):
+        return voxelize(keypoints[..., :3], grid)
+
+    detector = types.SimpleNamespace(cfg=cfg, run=runs["skel"], decode=decode)
+    interp = evaluate.Interpolators(nm=None, vrnn=None, trajectories=1)
+    for traj, zero in ((linear, True), (curved, False)):
+        monkeypatch.setattr(
+            evaluate, "sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
+        )
+        out = evaluate.evaluate_interpolation(
+            detector, interp, {seq.name: traj}, rates=(3, 5), methods=("Lerp",)
+        )
+        assert set(out) == {"Lerp"} and set(out["Lerp"]) == {"3", "5"}
+        means = [out["Lerp"][r]["mean"] for r in ("3", "5")]
+        if zero:
+            assert means == pytest.approx([0.0, 0.0], abs=1e-3)  # x1e3, float32 round-off
+        else:
+            assert min(means) > 1.0  # whole cells apart: (2 / 16)^2 x 1e3 = 15.6 per cell
+
+
+def test_evaluate_command_writes_all_tables(runs, tmp_path):
+    from nmjax import cli
+
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--run", str(runs["nm"]), "--rates", "3,5", "--trajectories", "2"]
+    assert cli.main([*argv, "--max-segments", "1", "--max-crops", "1", "--out", str(out)]) == 0
+    results = json.loads((out / "results.json").read_text())
+    assert results["vrnn_run"] == str(runs["vrnn"])  # found beside the nm run
+    assert 0.0 < results["phase1"]["sc"]["score"] <= 1.0
+    assert np.isfinite(results["phase1"]["tracking"]["mean"])
+    assert set(results["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
+    for by_rate in results["interpolation"].values():
+        assert all(np.isfinite(by_rate[r]["mean"]) and by_rate[r]["n"] == 1 for r in ("3", "5"))
+    tables = (out / "tables.md").read_text()
+    for row in ("| Ours |", "| VRNN |", "| Lerp |", "| Slerp |", "SR = 5"):
+        assert row in tables
+    assert (out / "mcd.png").stat().st_size > 0
+
+
+def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):
+    from nmjax import cli
+
+    assert cli.main(["evaluate", "--run", str(runs["vrnn"])]) == 1
+    assert "--vrnn-run" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--run", str(tmp_path / "nope")]) == 1
+    assert "config.json not found" in capsys.readouterr().err

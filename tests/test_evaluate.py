@@ -103,3 +103,41 @@ def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys
     assert "--vrnn-run" in capsys.readouterr().err
     assert cli.main(["evaluate", "--run", str(tmp_path / "nope")]) == 1
     assert "config.json not found" in capsys.readouterr().err
+
+
+def test_ground_truth_supervised_variant_replaces_only_the_volume_term():
+    """Table 2's GT baseline: weights.vol_target="joints" swaps L_vol for the joint MSE."""
+    import dataclasses
+
+    import jax.numpy as jnp
+
+    from nmjax import losses
+    from nmjax.config import LossWeights
+
+    rng = np.random.default_rng(0)
+    b, t, g, k = 1, 3, 8, 4
+    outputs = {
+        "voxels": jnp.asarray((rng.random((b, t, 2 * g, 2 * g, 2 * g)) > 0.8), jnp.float32),
+        "recon": jnp.full((b, t, 2 * g, 2 * g, 2 * g), 0.5),
+        "heatmaps": jnp.asarray(rng.random((b, t, g // 2, g // 2, g // 2, k)), jnp.float32),
+        "keypoints": jnp.asarray(rng.uniform(0, 1, (b, t, k, 4)), jnp.float32),
+        "affinity": losses.affinity_from_params(jnp.ones((2, k, k - 1))),
+        "joints": jnp.asarray(rng.uniform(0, 1, (b, t, k, 3)), jnp.float32),
+    }
+    weights = LossWeights()
+    gt = dataclasses.replace(weights, vol_target="joints")
+    _, terms = losses.skeleton_loss(outputs, weights)
+    _, gt_terms = losses.skeleton_loss(outputs, gt)
+    kp, joints = np.asarray(outputs["keypoints"]), np.asarray(outputs["joints"])
+    expect = np.mean(np.sum((kp[..., :3] - joints) ** 2, axis=-1))
+    assert float(gt_terms["vol"]) == pytest.approx(expect, rel=1e-5)
+    assert float(terms["vol"]) != pytest.approx(expect, rel=1e-3)
+    for name in ("recon", "sparse", "sep", "local", "time", "complex", "traj"):
+        assert float(gt_terms[name]) == float(terms[name])
+    with pytest.raises(ValueError, match="model.num_keypoints=5"):
+        losses.skeleton_loss({**outputs, "joints": outputs["joints"][..., :1, :].repeat(5, -2)}, gt)
+    with pytest.raises(ValueError, match="vol_target"):
+        losses.skeleton_loss(outputs, dataclasses.replace(weights, vol_target="bones"))
+    without = {key: v for key, v in outputs.items() if key != "joints"}
+    with pytest.raises(ValueError, match="ground-truth joints"):
+        losses.skeleton_loss(without, gt)

@@ -120,6 +120,9 @@ class LossWeights:
     traj: float = 1.0
     sep_sigma: float = 0.02  # sigma_s = 1 / (2 sigma^2) = 1250
     intensity_weighted: bool = False  # True: Eqs. 13, 15, 16 as printed
+    # "volume": Eq. 8. "joints": the ground-truth-supervised baseline of Table 2, L_vol replaced
+    # by the MSE between keypoint k and ground-truth joint k (needs K = J and joints in the data).
+    vol_target: str = "volume"
 
 
 @dataclass(frozen=True)

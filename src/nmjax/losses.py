@@ -365,7 +365,42 @@ def kl_diag_gaussians(
     return kl if axis is None else jnp.sum(kl, axis=axis)
 
 
+def joint_supervision(keypoints: Array, joints: Array) -> Array:
+    """Ground-truth-supervised replacement of L_vol (paper Sec. 5, the "GT" row of Table 2).
+
+    Mean squared distance between keypoint k and ground-truth joint k.
+
+    Args:
+        keypoints: (..., K, 4) keypoints (xyz used).
+        joints: (..., K, 3) ground-truth joints in the same normalised frame, one per keypoint.
+
+    Returns:
+        (...) mean over K of ||mu_k - j_k||^2.
+    """
+    if keypoints.shape[-2] != joints.shape[-2]:
+        raise ValueError(
+            f"joint supervision needs one ground-truth joint per keypoint: K="
+            f"{keypoints.shape[-2]} keypoints but J={joints.shape[-2]} joints; set "
+            f"model.num_keypoints={joints.shape[-2]}"
+        )
+    return jnp.mean(jnp.sum(jnp.square(keypoints[..., :3] - joints), axis=-1), axis=-1)
+
+
 # --- total (Eq. 23) ----------------------------------------------------------------------------
+
+
+def _volume_term(outputs: dict[str, Array], target: str) -> Array:
+    """L_vol (Eq. 8), or with target "joints" the ground-truth-supervised baseline."""
+    if target == "volume":
+        return volume_fitting(outputs["voxels"], outputs["keypoints"])
+    if target == "joints":
+        if "joints" not in outputs:
+            raise ValueError(
+                "weights.vol_target='joints' needs ground-truth joints in outputs['joints']; "
+                "use a dataset with joints"
+            )
+        return joint_supervision(outputs["keypoints"], outputs["joints"])
+    raise ValueError(f"weights.vol_target must be 'volume' or 'joints', got {target!r}")
 
 
 def skeleton_loss(
@@ -392,7 +427,7 @@ def skeleton_loss(
         "recon": jnp.mean(reconstruction_bce(voxels, outputs["recon"])),
         "sparse": jnp.mean(heatmap_sparsity(outputs["heatmaps"])),
         "sep": jnp.mean(separation(kp, weights.sep_sigma)),
-        "vol": jnp.mean(volume_fitting(voxels, kp)),
+        "vol": jnp.mean(_volume_term(outputs, weights.vol_target)),
         "local": jnp.mean(graph_local(kp, aff, iw)),
         "time": jnp.mean(graph_time(kp, aff, iw)),
         "complex": graph_complexity(aff),

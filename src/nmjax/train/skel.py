@@ -135,22 +135,26 @@ class Steps:
         self.train = jax.jit(self._train, donate_argnums=0)
         self.eval = jax.jit(self._eval)
 
-    def _train(self, state: Any, voxels: jax.Array) -> tuple[Any, dict[str, jax.Array]]:
+    def _train(
+        self, state: Any, voxels: jax.Array, joints: jax.Array | None = None
+    ) -> tuple[Any, dict[str, jax.Array]]:
         self.train_traces += 1
         model, optimizer = nnx.merge(self.graphdef, state)
 
         def loss_fn(model: KeypointDetector):
-            return losses.skeleton_loss(model(voxels), self.weights)
+            return losses.skeleton_loss(_with_joints(model(voxels), joints), self.weights)
 
         (loss, terms), grads = nnx.value_and_grad(loss_fn, has_aux=True)(model)
         optimizer.update(model, grads)
         scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms}
         return nnx.state((model, optimizer)), scalars
 
-    def _eval(self, state: Any, voxels: jax.Array) -> tuple[dict[str, jax.Array], jax.Array]:
+    def _eval(
+        self, state: Any, voxels: jax.Array, joints: jax.Array | None = None
+    ) -> tuple[dict[str, jax.Array], jax.Array]:
         model, _ = nnx.merge(self.graphdef, state)
         out = model(voxels)
-        loss, terms = losses.skeleton_loss(out, self.weights)
+        loss, terms = losses.skeleton_loss(_with_joints(out, joints), self.weights)
         return {"loss": loss, **terms}, out["keypoints"]
 
 
@@ -169,6 +173,19 @@ def get_steps(graphdef: Any, cfg: SkelTrainConfig) -> Steps:
     if key not in _STEPS_CACHE:
         _STEPS_CACHE[key] = Steps(graphdef, cfg)
     return _STEPS_CACHE[key]
+
+
+def _with_joints(outputs: dict[str, jax.Array], joints: jax.Array | None) -> dict:
+    return outputs if joints is None else {**outputs, "joints": joints}
+
+
+def supervision(steps: Steps, batch: dict[str, np.ndarray]) -> jax.Array | None:
+    """The batch's ground-truth joints when the loss is joint-supervised (vol_target="joints")."""
+    if steps.weights.vol_target != "joints":
+        return None
+    if "joints" not in batch:
+        raise ValueError("weights.vol_target='joints' needs a dataset with ground-truth joints")
+    return jnp.asarray(batch["joints"])
 
 
 def model_of(graphdef: Any, state: Any) -> KeypointDetector:
@@ -193,7 +210,9 @@ def validate(
     sc = metrics.SemanticConsistency()
     all_kp = []
     for batch in batches:
-        terms, keypoints = steps.eval(state, jnp.asarray(batch["voxels"]))
+        terms, keypoints = steps.eval(
+            state, jnp.asarray(batch["voxels"]), supervision(steps, batch)
+        )
         for name, value in terms.items():
             sums[name] = sums.get(name, 0.0) + float(value)
         if "joints" in batch:
@@ -269,7 +288,9 @@ def train(
             batch = next(data_iter)
             if step_hook is not None:
                 state = step_hook(step, state)
-            state, scalars = steps.train(state, jnp.asarray(batch["voxels"]))
+            state, scalars = steps.train(
+                state, jnp.asarray(batch["voxels"]), supervision(steps, batch)
+            )
             step += 1
             loss = float(scalars["loss"])
             if not math.isfinite(loss):

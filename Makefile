@@ -12,7 +12,7 @@ ARGS ?=
 SKEL_FLAGS := --data $(DATA) --preset $(PRESET) $(if $(STEPS),--steps $(STEPS)) \
 	$(if $(RUN),--run $(RUN)) $(if $(filter 1,$(RESUME)),--resume)
 
-.PHONY: install test test-slow lint format train-skel train-dyn prepare-data clean
+.PHONY: install test test-slow lint format train-skel train-dyn prepare-data experiments clean
 
 install:
 	$(PYTHON) -m venv $(VENV)
@@ -48,6 +48,18 @@ DYN_FLAGS := --data $(DATA) --model $(MODEL) --preset $(PRESET) \
 
 train-dyn:
 	$(NMJAX) train-dyn $(DYN_FLAGS) $(ARGS)
+
+# Paper tables on the synthetic bodies at CPU scale -> experiments/results/*.md and plots.
+# STEPS: phase-1 steps per run (default 2000); DYN_STEPS: phase-2 steps (default 3000).
+DYN_STEPS ?= 3000
+EXP_STEPS = $(or $(STEPS),2000)
+EXP_PY := JAX_PLATFORMS=cpu $(VENV)/bin/python
+
+experiments:
+	$(EXP_PY) experiments/table1_2_9_10_phase1.py --steps $(EXP_STEPS)
+	$(EXP_PY) experiments/ltraj_ablation.py --steps $(EXP_STEPS)
+	$(EXP_PY) experiments/table11_12_interpolation.py --skel-steps $(EXP_STEPS) \
+		--dyn-steps $(DYN_STEPS)
 
 clean:
 	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

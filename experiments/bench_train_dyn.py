@@ -1,7 +1,7 @@
 """Steps per second of the phase-2 train step (`nmjax.train.dyn.train_step`) on this machine.
 
-Random-walk keypoint trajectories on a chain skeleton stand in for a phase-1 run (the step's cost
-does not depend on the values). Prints one JSON line per (preset, model).
+Random-walk keypoint trajectories on a hand-like skeleton (five chains) stand in for a phase-1
+run (the step's cost does not depend on the values). Prints one JSON line per (preset, model).
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_train_dyn.py --keypoints 12 --steps 20
 """
@@ -24,7 +24,8 @@ from nmjax.train import dyn
 def bench(preset: str, model: str, num_keypoints: int, steps: int) -> dict[str, float | str]:
     cfg = dyn_preset("synth-arm", preset)
     cfg = dyn.dataclasses.replace(cfg, model=dyn.dataclasses.replace(cfg.model, model=model))
-    parents = (0, *range(num_keypoints - 1))  # a chain
+    # Hand-like tree: five chains from the root (depth about K/5, as in synth-hand).
+    parents = tuple(max(k - 5, 0) for k in range(num_keypoints))
     order = tuple(range(num_keypoints))
     rng = np.random.default_rng(0)
     walk = np.cumsum(rng.normal(scale=0.01, size=(400, num_keypoints, 4)), axis=0)
@@ -46,6 +47,7 @@ def bench(preset: str, model: str, num_keypoints: int, steps: int) -> dict[str, 
         "preset": preset,
         "model": model,
         "K": num_keypoints,
+        "depth": max(k // 5 + (k % 5 > 0) for k in range(num_keypoints)),
         "T": cfg.frames,
         "B": cfg.batch_size,
         "S": cfg.model.posterior_samples,

@@ -217,15 +217,20 @@ class Dynamics(nnx.Module):
         mean_q, std_q = self.posterior_dist(h, x)
         eps = jax.random.normal(key, (samples, *mean_q.shape))
         z_all = mean_q + std_q * eps  # (S, B, D_z)
-        x_all, rot_all = self.decode(
-            jnp.broadcast_to(h, (samples, *h.shape)),
-            z_all,
-            jnp.broadcast_to(lengths, (samples, *lengths.shape)),
+        # The choice is not differentiable and only the kept sample carries gradient, so the S
+        # candidates are decoded without it and the kept one is decoded again with it: the same
+        # gradient as differentiating through all S decodings, at the backward cost of one.
+        x_all, _ = jax.lax.stop_gradient(
+            self.decode(
+                jnp.broadcast_to(h, (samples, *h.shape)),
+                z_all,
+                jnp.broadcast_to(lengths, (samples, *lengths.shape)),
+            )
         )  # the S samples ride along as a leading batch axis
         error = jnp.sum((x_all - x) ** 2, axis=(-2, -1))  # (S, B)
         best = jnp.argmin(error, axis=0)  # (B,)
-        pick = jax.vmap(lambda a, i: a[i], in_axes=(1, 0))  # (S, B, ...) -> (B, ...)
-        z, x_hat, rotations = pick(z_all, best), pick(x_all, best), pick(rot_all, best)
+        z = jax.vmap(lambda a, i: a[i], in_axes=(1, 0))(z_all, best)  # (S, B, D_z) -> (B, D_z)
+        x_hat, rotations = self.decode(h, z, lengths)
         out = StepOutput(x_hat, rotations, z, mean_q, std_q, mean_p, std_p)
         return self.recur(h, x_hat, z), out
 

@@ -66,9 +66,17 @@ def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, mon
         monkeypatch.setattr(
             evaluate, "sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
         )
+        errors: dict = {}
         out = evaluate.evaluate_interpolation(
-            detector, interp, {seq.name: traj}, rates=(3, 5), methods=("Lerp",)
+            detector,
+            interp,
+            {seq.name: traj},
+            rates=(3, 5),
+            methods=("Lerp",),
+            keypoint_errors=errors,
         )
+        kp_means = [errors["Lerp"][r]["mean"] for r in ("3", "5")]
+        assert kp_means == pytest.approx([0.0, 0.0], abs=1e-9) if zero else min(kp_means) > 1e-3
         assert set(out) == {"Lerp"} and set(out["Lerp"]) == {"3", "5"}
         means = [out["Lerp"][r]["mean"] for r in ("3", "5")]
         if zero:

@@ -266,8 +266,14 @@ def evaluate_interpolation(
     seed: int = 0,
     split: str = "test",
     methods: tuple[str, ...] = METHODS,
+    voxels: bool = True,
+    keypoint_errors: dict | None = None,
 ) -> dict[str, dict[str, dict]]:
     """M-CD (Eq. 22) x1e3 of every method at every sampling rate, per test sequence.
+
+    Alongside, when `keypoint_errors` is a dict it is filled in the same layout with the squared
+    xyz error of the in-between keypoints against the observed ones (sum over K, mean over
+    frames; a decoder-free check of the same interpolations).
 
     Args:
       detector: the phase-1 run's detector (its decoder turns keypoints into voxels).
@@ -279,6 +285,8 @@ def evaluate_interpolation(
       seed: PRNG seed of the generative methods.
       split: the split whose sequences are evaluated.
       methods: the methods to run (VRNN is dropped when no VRNN model is given).
+      voxels: decode and score M-CD; False computes only `keypoint_errors` (much faster).
+      keypoint_errors: optional dict to receive the keypoint errors.
 
     Returns:
       {method: {str(SR): {"mean", "ci95", "n", "per_sequence"}}}; methods without a model left
@@ -289,6 +297,7 @@ def evaluate_interpolation(
     cfg = detector.cfg
     methods = [m for m in methods if m != "VRNN" or interpolators.vrnn is not None]
     per_seq: dict[str, dict[int, dict[str, float]]] = {m: {r: {} for r in rates} for m in methods}
+    kp_seq: dict[str, dict[int, dict[str, float]]] = {m: {r: {} for r in rates} for m in methods}
     key = jax.random.key(seed)
     for seq in load_sequences(cfg.data.name, split, cfg.data.root):
         if seq.name not in trajectories:
@@ -304,6 +313,7 @@ def evaluate_interpolation(
             if len(starts) == 0:
                 continue  # the sequence is shorter than one gap
             scores: dict[str, list[float]] = {m: [] for m in methods}
+            kp_err: dict[str, list[float]] = {m: [] for m in methods}
             for i in range(0, len(starts), chunk):
                 ts = starts[i : i + chunk]
                 ts = np.concatenate([ts, np.repeat(ts[-1:], chunk - len(ts))])  # fixed shape
@@ -312,12 +322,31 @@ def evaluate_interpolation(
                 key, sub = jax.random.split(key)
                 for method in methods:
                     x = interpolators.run(method, kp[ts], kp[ts + rate], rate, sub)
+                    inner = np.sum(
+                        (x[:real, 1:-1, :, :3] - kp[frames[:real, 1:-1], :, :3]) ** 2, -1
+                    )
+                    kp_err[method] += list(np.mean(np.sum(inner, -1), -1)) if rate > 1 else []
+                    if not voxels:
+                        continue
                     recon = detector.decode(x, vox[ts])
                     for j in range(real):
                         mcd = metrics.motion_chamfer(vox[frames[j]], recon[j])
                         scores[method].append(mcd * MCD_SCALE)
             for method in methods:
-                per_seq[method][rate][seq.name] = float(np.mean(scores[method]))
+                if voxels:
+                    per_seq[method][rate][seq.name] = float(np.mean(scores[method]))
+                if kp_err[method]:
+                    kp_seq[method][rate][seq.name] = float(np.mean(kp_err[method]))
+    if keypoint_errors is not None:
+        keypoint_errors.update(
+            {
+                m: {
+                    str(r): {**summarize(list(kp_seq[m][r].values())), "per_sequence": kp_seq[m][r]}
+                    for r in rates
+                }
+                for m in methods
+            }
+        )
     return {
         m: {
             str(r): {**summarize(list(per_seq[m][r].values())), "per_sequence": per_seq[m][r]}
@@ -362,11 +391,24 @@ def markdown_tables(results: dict) -> str:
             f"| Ours | {fmt(tr['mean'], tr['ci95'])} | {tr['n']} |",
             "",
         ]
-    mcd = results.get("interpolation")
+    for key, title in (
+        ("interpolation", "Interpolation M-CD x1e3 (Eq. 22, paper Tables 11-12; 95% CI)"),
+        (
+            "interpolation_keypoints",
+            "In-between keypoint error, sum over K of squared xyz (95% CI)",
+        ),
+    ):
+        lines += interpolation_table(results.get(key), title)
+    return "\n".join(lines)
+
+
+def interpolation_table(mcd: dict | None, title: str) -> list[str]:
+    """Markdown lines of one {method: {SR: summary}} table (Tables 11-12 layout)."""
+    lines: list[str] = []
     if mcd:
         rates = list(next(iter(mcd.values())).keys())
         lines += [
-            "## Interpolation M-CD x1e3 (Eq. 22, paper Tables 11-12; 95% CI over sequences)",
+            f"## {title}",
             "",
             "| model | " + " | ".join(f"SR = {r}" for r in rates) + " | Average |",
             "|---|" + "---|" * (len(rates) + 1),
@@ -378,7 +420,7 @@ def markdown_tables(results: dict) -> str:
             avg = float(np.mean(finite)) if finite else float("nan")
             lines.append(f"| {method} | " + " | ".join(cells) + f" | {fmt(avg)} |")
         lines.append("")
-    return "\n".join(lines)
+    return lines
 
 
 def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
@@ -444,9 +486,17 @@ def evaluate_run(
         vrnn = None if vrnn_run is None else nnx.split(dyn.restore_model(vrnn_run))
         traj = dyn.load_trajectories(skel_run, "test")
         interp = Interpolators(nm, vrnn, trajectories)
+        kp_errors: dict = {}
         results["interpolation"] = evaluate_interpolation(
-            detector, interp, traj, rates, max_segments=max_segments, seed=seed
+            detector,
+            interp,
+            traj,
+            rates,
+            max_segments=max_segments,
+            seed=seed,
+            keypoint_errors=kp_errors,
         )
+        results["interpolation_keypoints"] = kp_errors
         results["settings"] = {
             "trajectories": trajectories,
             "max_segments": max_segments,

@@ -1,0 +1,92 @@
+"""Training curves of a phase-1 run: every loss term and the SC-score against the step.
+
+    .venv/bin/python experiments/train_skel_curves.py --run runs/skel-synth-arm-cpu
+
+Writes experiments/results/train_skel_<data>.json (the run's configuration, the command that made
+it, wall time, the final validation metrics and the curves) and .png (one panel per loss term,
+train and validation, plus the SC-score).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+from nmjax import io  # noqa: E402
+from nmjax.losses import TERMS  # noqa: E402
+from nmjax.train import common  # noqa: E402
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def curves(records: list[dict[str, float]], prefix: str) -> dict[str, list[list[float]]]:
+    """{name: [[step, value], ...]} for every metric starting with `prefix`."""
+    out: dict[str, list[list[float]]] = {}
+    for record in records:
+        for key, value in record.items():
+            if key.startswith(prefix):
+                out.setdefault(key[len(prefix) :], []).append([record["step"], value])
+    return out
+
+
+def plot(train: dict, val: dict, title: str, path: Path) -> None:
+    names = [*TERMS, "loss", "sc_score"]
+    fig, axes = plt.subplots(2, 5, figsize=(20, 7))
+    for ax, name in zip(axes.flat, names, strict=True):
+        for label, series in (("train", train), ("val", val)):
+            if name in series:
+                steps, values = zip(*series[name], strict=True)
+                ax.plot(steps, values, label=label, marker="." if label == "val" else None)
+        ax.set_title(name)
+        ax.set_xlabel("step")
+        if name != "sc_score":
+            ax.set_yscale("log")
+        ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with io.atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=90)
+    plt.close(fig)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--run", required=True, type=Path, help="phase-1 run folder")
+    parser.add_argument("--command", default="", help="the command that trained the run")
+    parser.add_argument("--wall-minutes", type=float, default=None, help="measured wall time")
+    args = parser.parse_args()
+
+    config = json.loads((args.run / "config.json").read_text())
+    records = common.read_metrics(args.run)
+    train, val = curves(records, "train/"), curves(records, "val/")
+    data = config["data"]["name"]
+    final_val = {name: series[-1][1] for name, series in val.items()}
+    summary = {
+        "run": str(args.run),
+        "command": args.command,
+        "wall_minutes": args.wall_minutes,
+        "steps": records[-1]["step"] if records else 0,
+        "final_val": final_val,
+        "config": config,
+        "train": train,
+        "val": val,
+    }
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    io.write_json(RESULTS / f"train_skel_{data}.json", summary)
+    plot(
+        train,
+        val,
+        f"phase 1 on {data} ({summary['steps']} steps)",
+        RESULTS / f"train_skel_{data}.png",
+    )
+    print({k: round(v, 4) for k, v in final_val.items()})
+
+
+if __name__ == "__main__":
+    main()

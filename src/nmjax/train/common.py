@@ -201,7 +201,15 @@ class Checkpointer:
             enable_async_checkpointing=False,
             create=True,
         )
-        self._manager = ocp.CheckpointManager(self.directory, options=options)
+        self._manager = ocp.CheckpointManager(
+            self.directory,
+            options=options,
+            # Named handlers let a fresh process read a checkpoint's metadata before restoring.
+            item_handlers={
+                "state": ocp.StandardCheckpointHandler(),
+                "data": grain.checkpoint.CheckpointHandler(),
+            },
+        )
 
     def latest_step(self) -> int | None:
         """The newest saved step, or None."""
@@ -268,22 +276,29 @@ class Checkpointer:
         where = f"checkpoint {step} in {self.directory}"
         failure = None
         try:
-            restored = self._manager.restore(step, args=ocp.args.Composite(**items))
+            # Refuse a mismatched checkpoint from its metadata, before any array read starts:
+            # orbax abandons the in-flight reads of a failed restore to a closed event loop.
+            saved = self._manager.item_metadata(step)["state"]
         except Exception as err:  # orbax/tensorstore raise many types for damaged files
-            lines = str(err).strip().splitlines()
-            failure = f"{type(err).__name__}: {lines[0][:300] if lines else ''}"
+            failure = err
+        else:
+            _check_compatible(abstract_state, saved, where)
+            try:
+                restored = self._manager.restore(step, args=ocp.args.Composite(**items))
+            except Exception as err:
+                failure = err
         if failure is not None:
+            lines = str(failure).strip().splitlines()
+            reason = f"{type(failure).__name__}: {lines[0][:300] if lines else ''}"
             # Finalise the read coroutines orbax abandoned on failure now, while the error is
             # reported, rather than at some later garbage collection.
             gc.collect()
             raise ValueError(
-                f"{where} cannot be restored ({failure}). It is corrupt or was written by a "
+                f"{where} cannot be restored ({reason}). It is corrupt or was written by a "
                 "different model configuration; it was left untouched. Start a new run "
                 "(--run DIR) or resume from the matching configuration."
             )
-        state = restored["state"]
-        _check_compatible(abstract_state, state, where)
-        return step, state
+        return step, restored["state"]
 
     def wait(self) -> None:
         self._manager.wait_until_finished()
@@ -299,21 +314,36 @@ class Checkpointer:
         self.close()
 
 
-def _check_compatible(expected: Any, restored: Any, where: str) -> None:
-    """Raises ValueError unless `restored` has the tree structure, shapes and dtypes expected."""
-    if jax.tree.structure(expected) != jax.tree.structure(restored):
+def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """{dotted leaf path: (shape, dtype)} for a pytree of arrays or orbax array metadata."""
+
+    def name(path: tuple[Any, ...]) -> str:
+        return ".".join(str(getattr(k, "key", getattr(k, "name", k))) for k in path)
+
+    leaves = jax.tree_util.tree_leaves_with_path(tree)
+    # nnx.Variable leaves end in `.value`; orbax metadata spells it as a dict key.
+    return {
+        name(path).removesuffix(".value"): (tuple(np.shape(x)), np.dtype(x.dtype))
+        for path, x in leaves
+    }
+
+
+def _check_compatible(expected: Any, saved: Any, where: str) -> None:
+    """Raises ValueError unless `saved` has the leaves, shapes and dtypes of `expected`."""
+    want, have = _leaf_specs(expected), _leaf_specs(saved)
+    if want.keys() != have.keys():
+        missing = sorted(want.keys() - have.keys())[:3]
+        extra = sorted(have.keys() - want.keys())[:3]
         raise ValueError(
-            f"{where} has a different parameter structure than the current model; it was written "
-            "by another configuration (start a new run or use the run's own config)"
+            f"{where} has a different parameter structure than the current model (missing "
+            f"{missing}, unexpected {extra}); it was written by another configuration (start a "
+            "new run or use the run's own config)"
         )
-    for (path, a), b in zip(
-        jax.tree_util.tree_leaves_with_path(expected), jax.tree.leaves(restored), strict=True
-    ):
-        if np.shape(a) != np.shape(b) or np.dtype(a.dtype) != np.dtype(b.dtype):
+    for key, (shape, dtype) in want.items():
+        if have[key] != (shape, dtype):
             raise ValueError(
-                f"{where}: {jax.tree_util.keystr(path)} has shape {np.shape(b)} {b.dtype}, the "
-                f"model expects {np.shape(a)} {a.dtype}; the checkpoint belongs to another "
-                "configuration"
+                f"{where}: {key} has shape {have[key][0]} {have[key][1]}, the model expects "
+                f"{shape} {dtype}; the checkpoint belongs to another configuration"
             )
 
 

@@ -125,13 +125,17 @@ def training_note(runs: dict[str, Path]) -> str:
     return "\n".join(lines)
 
 
+def provenance(runs: dict[str, Path]) -> str:
+    """Markdown saying which command made a results file and how far its runs were trained."""
+    return f"Command: `{command_line()}`\n\nTraining:\n{training_note(runs)}\n"
+
+
 def bar_plot(path: Path, groups: list[str], series: dict[str, list], ylabel: str, title: str):
     """Grouped bars; series values are (mean, ci or None)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+
+    from nmjax.viz import save_figure  # selects the Agg backend
 
     fig, ax = plt.subplots(figsize=(1.6 + 1.4 * len(groups), 3.4))
     width = 0.8 / max(len(series), 1)
@@ -144,7 +148,4 @@ def bar_plot(path: Path, groups: list[str], series: dict[str, list], ylabel: str
     ax.set_ylabel(ylabel)
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)

@@ -50,10 +50,9 @@ def main() -> None:
     parser.add_argument("--max-crops", type=int, default=4)
     args = parser.parse_args()
 
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from nmjax.viz import save_figure  # selects the Agg backend
 
     runs, rows = {}, []
     fig = plt.figure(figsize=(7, 3.4 * len(args.data)))
@@ -70,14 +69,11 @@ def main() -> None:
             )
             ax = fig.add_subplot(len(args.data), 2, 2 * i + j + 1, projection="3d")
             draw(ax, run, f"{data}: {label}")
-    fig.tight_layout()
-    with io.atomic_open(ec.RESULTS / "ltraj_ablation.png", "wb") as f:
-        fig.savefig(f, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, ec.RESULTS / "ltraj_ablation.png")
     io.write_text(
         ec.RESULTS / "ltraj_ablation.md",
         "# Appendix C.2: ablation of L_traj (skeletons side by side)\n\n"
-        f"Command: `{ec.command_line()}`\n\nTraining:\n{ec.training_note(runs)}\n\n"
+        f"{ec.provenance(runs)}\n"
         "![skeletons](ltraj_ablation.png)\n\n"
         "| data | model | SC-score | kept keypoints | parents after pruning |\n"
         "|---|---|---|---|---|\n"

@@ -12,14 +12,11 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from nmjax.data import synthetic  # noqa: E402
-from nmjax.io import atomic_open  # noqa: E402
+from nmjax.data import synthetic
+from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 NAMES = ("synth-hand", "synth-arm", "synth-human", "synth-quadruped")
 
@@ -56,10 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         ax.view_init(elev=20, azim=-60)
         ax.set_title(f"{name}: {len(body.joints)} joints, frame {args.frame}")
         ax.tick_params(labelsize=6)
-    fig.tight_layout()
-    with atomic_open(args.out, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, args.out, dpi=110)
     print(f"wrote {args.out}")
     return 0
 

@@ -11,9 +11,9 @@ experiments/results/table11_12_interpolation.md and table11_12_<data>.png.
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import exp_common as ec
-import numpy as np
 
 from nmjax import io
 from nmjax.evaluate import (
@@ -22,7 +22,6 @@ from nmjax.evaluate import (
     Interpolators,
     evaluate_interpolation,
     evaluate_run,
-    fmt,
     interpolation_table,
     plot_mcd,
 )
@@ -32,6 +31,21 @@ PAPER = (
     "Paper Table 11 (HanCo) averages: Ours 2.64, VRNN 2.98, Lerp 5.07, Slerp 4.52; Table 12 "
     "(D-FAUST): Ours 2.88, VRNN 2.96, Lerp 3.67, Slerp 3.65 (scale not stated in the paper)."
 )
+
+
+def trained_runs(
+    data: str, args: argparse.Namespace, runs: dict[str, Path]
+) -> tuple[Path, Path, Path]:
+    """The phase-1 "ours", phase-2 "nm" and phase-2 "vrnn" runs of `data` (trained if needed).
+
+    Each is also recorded in `runs` under "<data> phase 1" / "<data> nm" / "<data> vrnn" for the
+    training note of the results file.
+    """
+    skel = ec.skel_run(data, "ours", args.skel_steps)
+    nm = ec.dyn_run(data, "nm", skel, args.dyn_steps)
+    vrnn = ec.dyn_run(data, "vrnn", skel, args.dyn_steps)
+    runs.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
+    return skel, nm, vrnn
 
 
 def main() -> None:
@@ -54,10 +68,7 @@ def main() -> None:
 
     sections, runs = [], {}
     for data in args.data:
-        skel = ec.skel_run(data, "ours", args.skel_steps)
-        nm = ec.dyn_run(data, "nm", skel, args.dyn_steps)
-        vrnn = ec.dyn_run(data, "vrnn", skel, args.dyn_steps)
-        runs.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
+        _, nm, vrnn = trained_runs(data, args, runs)
         res = evaluate_run(
             nm,
             vrnn_run=vrnn,
@@ -69,27 +80,12 @@ def main() -> None:
         )
         mcd = res["interpolation"]
         plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
-        rates = [str(r) for r in args.rates]
-        lines = [
-            f"## {data}",
-            "",
-            "| model | " + " | ".join(f"SR = {r}" for r in rates) + " | Average |",
-            "|---|" + "---|" * (len(rates) + 1),
-        ]
-        for method, by_rate in mcd.items():
-            means = [by_rate[r]["mean"] for r in rates]
-            finite = [m for m in means if np.isfinite(m)]
-            cells = [fmt(by_rate[r]["mean"], by_rate[r]["ci95"]) for r in rates]
-            avg = fmt(float(np.mean(finite)) if finite else float("nan"))
-            lines.append(f"| {method} | " + " | ".join(cells) + f" | {avg} |")
-        lines += ["", f"![M-CD](table11_12_{data}.png)", ""]
+        lines = interpolation_table(mcd, data) + [f"![M-CD](table11_12_{data}.png)", ""]
         sections.append("\n".join(lines))
     io.write_text(
         ec.RESULTS / "table11_12_interpolation.md",
         "# Tables 11-12: interpolation M-CD x1e3 (Eq. 22; 95% CI over test sequences)\n\n"
-        f"Command: `{ec.command_line()}`\n\nTraining:\n{ec.training_note(runs)}\n\n"
-        + "\n".join(sections)
-        + f"\n{PAPER}\n",
+        f"{ec.provenance(runs)}\n" + "\n".join(sections) + f"\n{PAPER}\n",
     )
 
 
@@ -99,10 +95,7 @@ def keypoints_only(args) -> None:
 
     sections, runs = [], {}
     for data in args.data:
-        skel = ec.skel_run(data, "ours", args.skel_steps)
-        nm = ec.dyn_run(data, "nm", skel, args.dyn_steps)
-        vrnn = ec.dyn_run(data, "vrnn", skel, args.dyn_steps)
-        runs.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
+        skel, nm, vrnn = trained_runs(data, args, runs)
         interp = Interpolators(
             nnx.split(dyn.restore_model(nm)), nnx.split(dyn.restore_model(vrnn)), args.trajectories
         )
@@ -122,9 +115,7 @@ def keypoints_only(args) -> None:
     io.write_text(
         ec.RESULTS / "table11_12_keypoints.md",
         "# Tables 11-12, decoder-free: in-between keypoint error of the interpolations\n\n"
-        f"Command: `{ec.command_line()}`\n\nTraining:\n{ec.training_note(runs)}\n\n"
-        + "\n".join(sections)
-        + "\n",
+        f"{ec.provenance(runs)}\n" + "\n".join(sections) + "\n",
     )
 
 

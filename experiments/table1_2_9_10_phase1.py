@@ -48,8 +48,7 @@ def main() -> None:
             results[data, variant] = evaluate_phase1(Detector.load(run), args.max_crops)
             print(data, variant, results[data, variant].get("sc", {}).get("score"), flush=True)
 
-    note = ec.training_note(runs)
-    head = f"Command: `{ec.command_line()}`\n\nTraining:\n{note}\n"
+    head = ec.provenance(runs)
     cols = "| model | " + " | ".join(f"{d} ({COUNTERPART.get(d, d)})" for d in args.data) + " |"
     rule = "|---|" + "---|" * len(args.data)
 

@@ -66,10 +66,9 @@ def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
 
 
 def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from nmjax.viz import save_figure  # selects the Agg backend
 
     fig, axes = plt.subplots(1, 3, figsize=(14, 4))
     for (model, records), color in zip(runs.items(), ("tab:blue", "tab:orange"), strict=False):
@@ -91,11 +90,7 @@ def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str)
         ax.set_yscale("log")
         ax.set_xlabel("step")
     axes[1].legend()
-    fig.suptitle(title)
-    fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, title=title, dpi=90)
 
 
 def main() -> None:

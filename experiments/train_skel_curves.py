@@ -13,14 +13,12 @@ import argparse
 import json
 from pathlib import Path
 
-import matplotlib
+import matplotlib.pyplot as plt
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from nmjax import io  # noqa: E402
-from nmjax.losses import TERMS  # noqa: E402
-from nmjax.train import common  # noqa: E402
+from nmjax import io
+from nmjax.losses import TERMS
+from nmjax.train import common
+from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -48,11 +46,7 @@ def plot(train: dict, val: dict, title: str, path: Path) -> None:
         if name != "sc_score":
             ax.set_yscale("log")
         ax.legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=90)
-    plt.close(fig)
+    save_figure(fig, path, title=title, dpi=90)
 
 
 def main() -> None:

@@ -23,6 +23,38 @@ def test_confidence_interval_is_the_student_t_half_width():
     assert summary["mean"] == 2.0 and summary["n"] == 2
 
 
+def test_summaries_per_rate_and_their_table():
+    per_sequence = {
+        "Ours": {3: {"a": 1.0, "b": 3.0}, 5: {"a": 4.0}},
+        "Lerp": {3: {"a": 2.0, "b": 2.0}, 5: {"a": float("nan")}},
+    }
+    summary = evaluate.summarize_per_rate(per_sequence)
+    assert list(summary) == ["Ours", "Lerp"] and list(summary["Ours"]) == ["3", "5"]
+    assert summary["Ours"]["3"]["mean"] == 2.0 and summary["Ours"]["3"]["n"] == 2
+    # sample std sqrt(2), n = 2: t_{0.975, 1} = 12.706205, half-width 12.706205 * sqrt(2 / 2)
+    assert summary["Ours"]["3"]["ci95"] == pytest.approx(12.706205, abs=1e-5)
+    assert summary["Ours"]["5"]["per_sequence"] == {"a": 4.0}
+    assert summary["Lerp"]["5"]["n"] == 0
+    lines = evaluate.interpolation_table(summary, "M-CD")
+    assert lines[:4] == [
+        "## M-CD",
+        "",
+        "| model | SR = 3 | SR = 5 | Average |",
+        "|---|---|---|---|",
+    ]
+    assert lines[4] == "| Ours | 2 (12.7) | 4 (n/a) | 3 |"
+    assert lines[5] == "| Lerp | 2 (0) | n/a | 2 |"  # NaN left out of the average
+    assert lines[6:] == [""] and evaluate.interpolation_table({}, "M-CD") == []
+
+
+def test_plot_mcd_writes_one_png_atomically(tmp_path):
+    summary = evaluate.summarize_per_rate({"Ours": {3: {"a": 1.0, "b": 2.0}, 5: {"a": 3.0}}})
+    path = tmp_path / "figures" / "mcd.png"
+    evaluate.plot_mcd(path, summary, title="M-CD")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert [p.name for p in path.parent.iterdir()] == ["mcd.png"]  # no temporary file left
+
+
 def test_keyframe_starts_fit_inside_the_sequence():
     np.testing.assert_array_equal(evaluate.keyframe_starts(12, 3, 10), [0, 3, 6])
     np.testing.assert_array_equal(evaluate.keyframe_starts(12, 5, 10), [0, 5])

@@ -338,21 +338,25 @@ def evaluate_interpolation(
                 if kp_err[method]:
                     kp_seq[method][rate][seq.name] = float(np.mean(kp_err[method]))
     if keypoint_errors is not None:
-        keypoint_errors.update(
-            {
-                m: {
-                    str(r): {**summarize(list(kp_seq[m][r].values())), "per_sequence": kp_seq[m][r]}
-                    for r in rates
-                }
-                for m in methods
-            }
-        )
+        keypoint_errors.update(summarize_per_rate(kp_seq))
+    return summarize_per_rate(per_seq)
+
+
+def summarize_per_rate(per_sequence: dict[str, dict[int, dict[str, float]]]) -> dict:
+    """The summary over sequences (`summarize`) of every method at every sampling rate.
+
+    Args:
+      per_sequence: {method: {SR: {sequence: score}}}.
+
+    Returns:
+      {method: {str(SR): {"mean", "ci95", "n", "per_sequence"}}}.
+    """
     return {
-        m: {
-            str(r): {**summarize(list(per_seq[m][r].values())), "per_sequence": per_seq[m][r]}
-            for r in rates
+        method: {
+            str(rate): {**summarize(list(scores.values())), "per_sequence": scores}
+            for rate, scores in by_rate.items()
         }
-        for m in methods
+        for method, by_rate in per_sequence.items()
     }
 
 
@@ -425,10 +429,9 @@ def interpolation_table(mcd: dict | None, title: str) -> list[str]:
 
 def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
     """M-CD against SR with 95% CI error bars, one line per method (Fig. 5 style)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+
+    from nmjax.viz import save_figure  # selects the Agg backend
 
     fig, ax = plt.subplots(figsize=(5.5, 3.6))
     for method, by_rate in mcd.items():
@@ -440,10 +443,7 @@ def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
     ax.set_ylabel("M-CD x1e3")
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 # --- the command ---------------------------------------------------------------------------------

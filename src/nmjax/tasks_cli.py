@@ -151,6 +151,19 @@ def write_strip(path: Path, images: list[np.ndarray], columns: int = 6) -> None:
         f.write(buffer.getvalue())
 
 
+def write_motion_pictures(
+    stem: Path,
+    motions: list[np.ndarray],
+    labels: list[str],
+    parents,
+    clouds: list[np.ndarray | None] | None = None,
+) -> None:
+    """`stem`.gif (the whole motion) and `stem`.png (a strip of frames) of `render_frames`."""
+    images = render_frames(motions, labels, parents, clouds=clouds)
+    write_gif(stem.with_name(stem.name + ".gif"), images)
+    write_strip(stem.with_name(stem.name + ".png"), images)
+
+
 # --- generate -------------------------------------------------------------------------------
 
 
@@ -207,9 +220,7 @@ def run_generate(
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
         labels = ["observed"] + [f"sample {s}" for s in range(samples)]
-        images = render_frames(motions, labels, model.parents)
-        write_gif(out / f"{name}.gif", images)
-        write_strip(out / f"{name}.png", images)
+        write_motion_pictures(out / name, motions, labels, model.parents)
     return out
 
 
@@ -251,9 +262,7 @@ def run_interpolate(
     )
     for i, name in enumerate(names):
         motions = [truth[i]] + [results[m][i] for m in methods]
-        images = render_frames(motions, ["truth", *methods], model.parents)
-        write_gif(out / f"{name}.gif", images)
-        write_strip(out / f"{name}.png", images)
+        write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
     return out
 
 
@@ -367,14 +376,13 @@ def run_retarget(
     # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
     sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)
     tri_centres = np.asarray(moved)[:, faces[sub]].mean(axis=2)  # (T, P, 3) a surface sketch
-    images = render_frames(
+    write_motion_pictures(
+        out / "retarget",
         [src_mu, np.asarray(joints)],
         [f"source {name}", f"retargeted {Path(target).name}"],
         parents,
         clouds=[None, tri_centres],
     )
-    write_gif(out / "retarget.gif", images)
-    write_strip(out / "retarget.png", images)
     return out
 
 
@@ -389,19 +397,23 @@ def _parser(prog: str, description: str) -> argparse.ArgumentParser:
     return parser
 
 
-def _positive(parser: argparse.ArgumentParser, args: argparse.Namespace, *names: str) -> None:
-    for name in names:
+def _parse_and_run(parser: argparse.ArgumentParser, argv: list[str], fn, positive=()) -> int:
+    """Parses `argv`, checks the `positive` options are >= 1 and calls `fn(**options)`.
+
+    Every option of the parser is passed to `fn` under its destination name, so the parser and
+    the task function must agree on names. Returns the exit status: 0, or 1 after printing a
+    FileNotFoundError / ValueError raised by the task.
+    """
+    args = parser.parse_args(argv)
+    for name in positive:
         if getattr(args, name) < 1:
             parser.error(f"--{name} must be >= 1, got {getattr(args, name)}")
-
-
-def _run(command: str, fn, **kwargs) -> int:
     try:
-        out = fn(**kwargs)
+        out = fn(**vars(args))
     except (FileNotFoundError, ValueError) as err:
-        print(f"nmjax {command}: {err}", file=sys.stderr)
+        print(f"{parser.prog}: {err}", file=sys.stderr)
         return 1
-    print(f"nmjax {command}: wrote {out}")
+    print(f"{parser.prog}: wrote {out}")
     return 0
 
 
@@ -412,20 +424,7 @@ def generate_main(argv: list[str]) -> int:
     parser.add_argument("--samples", type=int, default=3, help="futures per input")
     parser.add_argument("--inputs", type=int, default=2, help="test sequences used as inputs")
     parser.add_argument("--voxels", action="store_true", help="also decode voxels (phase-1)")
-    args = parser.parse_args(argv)
-    _positive(parser, args, "cond", "gen", "samples", "inputs")
-    return _run(
-        "generate",
-        run_generate,
-        run=args.run,
-        cond=args.cond,
-        gen=args.gen,
-        samples=args.samples,
-        inputs=args.inputs,
-        seed=args.seed,
-        voxels=args.voxels,
-        out=args.out,
-    )
+    return _parse_and_run(parser, argv, run_generate, ("cond", "gen", "samples", "inputs"))
 
 
 def interpolate_main(argv: list[str]) -> int:
@@ -434,19 +433,7 @@ def interpolate_main(argv: list[str]) -> int:
     parser.add_argument("--trajectories", type=int, default=16, help="rollouts to choose from")
     parser.add_argument("--inputs", type=int, default=2, help="test sequences")
     parser.add_argument("--vrnn-run", default=None, help="positional VRNN run for the baseline")
-    args = parser.parse_args(argv)
-    _positive(parser, args, "gap", "trajectories", "inputs")
-    return _run(
-        "interpolate",
-        run_interpolate,
-        run=args.run,
-        gap=args.gap,
-        trajectories=args.trajectories,
-        inputs=args.inputs,
-        vrnn_run=args.vrnn_run,
-        seed=args.seed,
-        out=args.out,
-    )
+    return _parse_and_run(parser, argv, run_interpolate, ("gap", "trajectories", "inputs"))
 
 
 def retarget_main(argv: list[str]) -> int:
@@ -455,16 +442,4 @@ def retarget_main(argv: list[str]) -> int:
     parser.add_argument("--source", default=None, help="test sequence name (default: first)")
     parser.add_argument("--frames", type=int, default=30, help="frames of the source motion")
     parser.add_argument("--points", type=int, default=20000, help="points sampled on the mesh")
-    args = parser.parse_args(argv)
-    _positive(parser, args, "frames", "points")
-    return _run(
-        "retarget",
-        run_retarget,
-        run=args.run,
-        target=args.target,
-        source=args.source,
-        frames=args.frames,
-        points=args.points,
-        seed=args.seed,
-        out=args.out,
-    )
+    return _parse_and_run(parser, argv, run_retarget, ("frames", "points"))

@@ -14,6 +14,27 @@ import numpy as np  # noqa: E402
 from nmjax import io  # noqa: E402
 
 
+def save_figure(
+    fig, path: str | os.PathLike, *, title: str | None = None, dpi: int = 100, tight: bool = True
+) -> None:
+    """Writes a matplotlib figure as PNG to `path` atomically, then closes it.
+
+    Args:
+      fig: the figure.
+      path: the .png file (its folder is created).
+      title: optional figure title (suptitle), set before the layout.
+      dpi: resolution.
+      tight: apply `fig.tight_layout()` first.
+    """
+    if title is not None:
+        fig.suptitle(title)
+    if tight:
+        fig.tight_layout()
+    with io.atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=dpi)
+    plt.close(fig)
+
+
 def strongest_edges(affinity: np.ndarray) -> list[tuple[int, int, float]]:
     """For each keypoint k its most affine other keypoint under max_n A_n: (k, k', a_kk')."""
     influence = np.asarray(affinity)
@@ -71,6 +92,4 @@ def plot_keypoints(
     ax.set_ylabel("y")
     ax.set_zlabel("z")
     ax.set_title(title)
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, tight=False)

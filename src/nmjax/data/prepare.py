@@ -94,6 +94,27 @@ def _read_raw_joints(path: Path, num_frames: int) -> np.ndarray:
     return joints.astype(np.float32)
 
 
+def write_sequence(
+    root: Path, split: str, seq: str, *, joint_file: str = "{seq}.npy", **arrays: np.ndarray | None
+) -> None:
+    """Writes one sequence into the prepared layout, atomically, in the order the arrays are given.
+
+    Every array `kind=array` goes to `<root>/<split>/<kind>/<seq>.npy` (kinds: vertices, joints,
+    angles, ...); joints go to `<root>/<split>/joints/<joint_file>` with `{seq}` filled in (the
+    dataset's `JOINT_FILE_PATTERNS` entry). Arrays given as None are skipped.
+    """
+    for kind, array in arrays.items():
+        if array is not None:
+            file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
+            io.save_npy(root / split / kind / file, array)
+
+
+def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:
+    """Writes `<root>/split.json`, then `<root>/meta.json`: meta last marks the set complete."""
+    io.write_json(root / "split.json", split)
+    io.write_json(root / "meta.json", meta)
+
+
 def _clear(root: Path) -> None:
     """Removes a previous dataset's files (only the nmjax layout, nothing else) from `root`."""
     for split in SPLITS:
@@ -150,11 +171,12 @@ def prepare_meshes(
                 for t, path in enumerate(paths):
                     vertices[t] = sample_frame(path, points, int(seeds[t]))
                     bar.update(1)
-                raw_joints = source / seq / "joints.npy"
+                raw_joints, joints = source / seq / "joints.npy", None
                 if raw_joints.is_file():
                     joints = _read_raw_joints(raw_joints, len(sequences[seq]))[: len(paths)]
-                    io.save_npy(root / split_name / "joints" / pattern.format(seq=seq), joints)
-                io.save_npy(root / split_name / "vertices" / f"{seq}.npy", vertices)
+                write_sequence(
+                    root, split_name, seq, joint_file=pattern, joints=joints, vertices=vertices
+                )
     meta = {}
     if (source / "meta.json").is_file():
         meta = json.loads((source / "meta.json").read_text())
@@ -166,8 +188,7 @@ def prepare_meshes(
         source=str(source),
         frames={seq: len(frames[seq]) for seq in names},
     )
-    io.write_json(root / "split.json", split)
-    io.write_json(root / "meta.json", meta)
+    write_index(root, split, meta)
     return root
 
 

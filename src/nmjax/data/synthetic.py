@@ -46,7 +46,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from nmjax.io import save_npy, write_json
+from nmjax.data.prepare import write_index, write_sequence
 
 DEG = np.pi / 180.0
 SPLITS = ("train", "test")
@@ -965,17 +965,22 @@ def generate(
         tqdm(jobs, desc=f"generating {name}", unit="seq", disable=not progress)
     ):
         sequence = simulate(name, int(lengths[index]), points=points, rng=children[index])
-        save_npy(root / split / "vertices" / f"{seq}.npy", sequence.vertices)
-        save_npy(root / split / "joints" / f"{seq}.npy", sequence.joints)
-        save_npy(root / split / "angles" / f"{seq}.npy", sequence.angles)
+        write_sequence(
+            root,
+            split,
+            seq,
+            vertices=sequence.vertices,
+            joints=sequence.joints,
+            angles=sequence.angles,
+        )
     for split in SPLITS:
         for kind in ("vertices", "joints", "angles"):
             for path in (root / split / kind).glob("*.npy"):
                 if _SEQ_NAME.fullmatch(path.stem) and path.stem not in splits[split]:
                     path.unlink()
-    write_json(root / "split.json", splits)
-    write_json(
-        root / "meta.json",
+    write_index(
+        root,
+        splits,
         {
             "name": name,
             "joint_names": body.joint_names,
@@ -1014,16 +1019,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=20000)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    root = args.root or Path("data") / args.name
+    args.root = args.root or Path("data") / args.name
     begin = time.perf_counter()
-    generate(
-        args.name,
-        root,
-        num_sequences=args.num_sequences,
-        frames=args.frames,
-        points=args.points,
-        seed=args.seed,
-    )
+    root = generate(**vars(args))  # the options are named as generate's arguments
     size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
     print(f"wrote {root} ({size / 2**20:.0f} MiB) in {time.perf_counter() - begin:.1f} s")
     return 0

@@ -13,6 +13,10 @@ frame), normalised with one bounding box over the crop (DESIGN section 4) and vo
 so every batch depends only on the seed and its position in the stream, not on threads or timing,
 and the iterator's state (`get_state` / `set_state`, or `grain.checkpoint.CheckpointSave`) is the
 position: a restored iterator yields exactly the batches the original would have.
+
+With several hosts, host p of P takes every P-th crop of that one stream (`[p::P]` after the
+random map, so each crop keeps its global index and random start) in batches of B / P: at every
+step the hosts' batches together are exactly the crops of the single-host batch.
 """
 
 from __future__ import annotations
@@ -95,11 +99,20 @@ class CropVoxelizer:
         return self.crop(index, start)
 
 
-def _dataset(sequences: list[Sequence], cfg: DataConfig, seed: int) -> grain.IterDataset:
+def _dataset(
+    sequences: list[Sequence], cfg: DataConfig, seed: int, shard: tuple[int, int] = (0, 1)
+) -> grain.IterDataset:
     crop = CropVoxelizer(sequences, cfg.frames, cfg.sample_rate, cfg.grid)
     ds = grain.MapDataset.range(len(sequences)).seed(seed).shuffle().repeat()
     ds = ds.random_map(crop)
-    buffer = max(cfg.prefetch, 1) * cfg.batch_size
+    index, count = shard
+    batch_size = cfg.batch_size
+    if count > 1:
+        from nmjax.train.parallel import host_share
+
+        batch_size = host_share(cfg.batch_size, "data.batch_size", count)
+        ds = ds[index::count]
+    buffer = max(cfg.prefetch, 1) * batch_size
     threads = 1 if cfg.prefetch > 0 else 0
     it_ds = ds.to_iter_dataset(grain.ReadOptions(num_threads=threads, prefetch_buffer_size=buffer))
     if cfg.worker_count > 0:
@@ -107,27 +120,43 @@ def _dataset(sequences: list[Sequence], cfg: DataConfig, seed: int) -> grain.Ite
         if not flags.FLAGS.is_parsed():
             flags.FLAGS.mark_as_parsed()
         it_ds = it_ds.mp_prefetch(grain.MultiprocessingOptions(num_workers=cfg.worker_count))
-    return it_ds.batch(cfg.batch_size, drop_remainder=True)
+    return it_ds.batch(batch_size, drop_remainder=True)
 
 
 def skel_iterator(
-    cfg: DataConfig, split: str = "train", seed: int | None = None
+    cfg: DataConfig,
+    split: str = "train",
+    seed: int | None = None,
+    *,
+    process_index: int | None = None,
+    process_count: int | None = None,
 ) -> grain.DatasetIterator:
     """The grain iterator of phase-1 batches; checkpoint it with `get_state` / `set_state`.
 
     Args:
-      cfg: dataset name and root, grid G, frames T, sample rate, batch size B, workers, prefetch.
+      cfg: dataset name and root, grid G, frames T, sample rate, global batch size B, workers,
+        prefetch.
       split: "train" or "test".
       seed: stream seed; default `cfg.seed`.
+      process_index, process_count: this host's shard of the stream; default
+        `jax.process_index()` / `jax.process_count()` (0 / 1 on a single host).
 
     Returns:
-      an infinite `grain.DatasetIterator` of dicts {"voxels": (B,T,G,G,G) float32, "joints":
-      (B,T,J,3) float32 (only when every sequence has ground-truth joints)}.
+      an infinite `grain.DatasetIterator` of dicts {"voxels": (B/P,T,G,G,G) float32, "joints":
+      (B/P,T,J,3) float32 (only when every sequence has ground-truth joints)}, P = process count.
     """
     if cfg.batch_size < 1:
         raise ValueError(f"DataConfig.batch_size must be >= 1, got {cfg.batch_size}")
+    if process_index is None or process_count is None:
+        import jax
+
+        process_index, process_count = jax.process_index(), jax.process_count()
+    if not 0 <= process_index < process_count:
+        raise ValueError(f"process_index {process_index} is not in 0..{process_count - 1}")
     sequences = load_sequences(cfg.name, split, cfg.root)
-    ds = _dataset(sequences, cfg, cfg.seed if seed is None else seed)
+    ds = _dataset(
+        sequences, cfg, cfg.seed if seed is None else seed, (process_index, process_count)
+    )
     return iter(ds)
 
 

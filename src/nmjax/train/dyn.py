@@ -34,7 +34,7 @@ from flax import nnx
 from nmjax import io, losses
 from nmjax.config import PRESETS, DynTrainConfig, dyn_preset
 from nmjax.models.dynamics import MODELS, Dynamics
-from nmjax.train import common
+from nmjax.train import common, parallel
 
 RUNS_ROOT = Path("runs")
 MAX_VAL_CROPS = 64
@@ -205,9 +205,15 @@ class StepSettings:
         return common.make_optimizer(self.learning_rate, (), (), self.clip_norm)
 
 
-@functools.partial(jax.jit, static_argnames=("graphdef", "settings"), donate_argnames="state")
-def train_step(state, poses, starts, base_key, step, *, graphdef, settings: StepSettings):
-    """One optimizer step of Eq. 3 + kl_weight * Eq. 4.
+@functools.partial(
+    jax.jit, static_argnames=("graphdef", "settings", "mesh"), donate_argnames="state"
+)
+def train_step(state, poses, starts, base_key, step, *, graphdef, settings: StepSettings, mesh):
+    """One data-parallel optimizer step of Eq. 3 + kl_weight * Eq. 4.
+
+    The crops are gathered from the (replicated) table inside the step and sharded over the
+    mesh's "data" axis, so each device runs the model on B / devices crops; the state and the
+    metrics stay replicated.
 
     Args:
       state: {"model": nnx.State of the model, "opt": optax state of its nnx.Param} (donated).
@@ -218,6 +224,7 @@ def train_step(state, poses, starts, base_key, step, *, graphdef, settings: Step
       graphdef: the model's nnx.GraphDef (static; equal for equal configurations, so a new run of
         the same configuration reuses the compiled step).
       settings: StepSettings (static).
+      mesh: the data mesh (static, `parallel.data_mesh`).
 
     Returns:
       (new state, metrics dict of scalars).
@@ -225,18 +232,25 @@ def train_step(state, poses, starts, base_key, step, *, graphdef, settings: Step
     model = nnx.merge(graphdef, state["model"])
     key_data, key_model = jax.random.split(jax.random.fold_in(base_key, step))
     x = sample_crops(poses, starts, key_data, settings.batch_size, settings.frames)
+    x = parallel.constrain_batch(x, mesh)
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (_, metrics), grads = grad_fn(model, x, key_model, settings.kl_weight)
     params = nnx.state(model, nnx.Param)
     updates, opt = settings.optimizer().update(grads, state["opt"], params)
     nnx.update(model, optax.apply_updates(params, updates))
     metrics["grad_norm"] = optax.tree.norm(grads)
-    return {"model": nnx.state(model), "opt": opt}, metrics
+    return parallel.constrain_replicated(({"model": nnx.state(model), "opt": opt}, metrics), mesh)
 
 
-def make_train_step(graphdef: nnx.GraphDef, cfg: DynTrainConfig) -> Callable[..., Any]:
-    """`train_step` bound to a model and configuration: `(state, poses, starts, key, step)`."""
-    return functools.partial(train_step, graphdef=graphdef, settings=StepSettings.of(cfg))
+def make_train_step(
+    graphdef: nnx.GraphDef, cfg: DynTrainConfig, mesh: jax.sharding.Mesh | None = None
+) -> Callable[..., Any]:
+    """`train_step` bound to a model, configuration and mesh (default: all devices):
+    `(state, poses, starts, key, step)`."""
+    mesh = parallel.data_mesh() if mesh is None else mesh
+    return functools.partial(
+        train_step, graphdef=graphdef, settings=StepSettings.of(cfg), mesh=mesh
+    )
 
 
 def build(
@@ -375,21 +389,30 @@ def train(
                 f"has {len(parents)} joints; re-export the keypoints of {skel_dir}"
             )
     cfg = dataclasses.replace(cfg, skel_run=str(skel_dir))
+    mesh = parallel.data_mesh()
+    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh)
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
-    run_dir = common.prepare_run_dir(run_dir, resume=resume, config=cfg)
+    run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
 
-    poses, starts = (jnp.asarray(a) for a in crop_table(train_traj, cfg.frames))
-    val_x = jnp.asarray(validation_crops(test_traj, cfg.frames))
+    # Every host holds the whole crop table and validation set: replicated global arrays.
+    poses, starts, val_x, base_key, val_key = parallel.replicate(
+        (
+            *crop_table(train_traj, cfg.frames),
+            validation_crops(test_traj, cfg.frames),
+            jax.random.key(cfg.seed),
+            jax.random.key(cfg.seed + 1),
+        ),
+        mesh,
+    )
     graphdef, state = build(cfg, parents, order)
-    step_fn = make_train_step(graphdef, cfg)
-    base_key = jax.random.key(cfg.seed)
-    val_key = jax.random.key(cfg.seed + 1)
+    state = parallel.replicate(state, mesh)
+    step_fn = make_train_step(graphdef, cfg, mesh)
 
     checkpointer = common.Checkpointer(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
     step = 0
     if resume and checkpointer.latest_step() is not None:
         step, state = checkpointer.restore(state)
-    writer = common.MetricWriter(run_dir, resume_step=step if resume else None)
+    writer = parallel.metric_writer(run_dir, resume_step=step if resume else None)
     history: list[dict[str, float]] = []
 
     def validate(step: int) -> None:
@@ -397,6 +420,8 @@ def train(
         scalars = {f"val/{k}": float(v) for k, v in metrics.items()}
         writer.write_scalars(step, scalars)
         history.append({"step": step, **scalars})
+        if not parallel.is_primary():
+            return
         plot_motion(
             run_dir / "figures" / f"motion_{step:07d}.png",
             np.asarray(val_x[0]),
@@ -415,7 +440,7 @@ def train(
     tic, tic_step = time.perf_counter(), step
     try:
         while step < cfg.steps:
-            state, metrics = step_fn(state, poses, starts, base_key, jnp.int32(step))
+            state, metrics = step_fn(state, poses, starts, base_key, np.int32(step))
             step += 1
             pbar.update(1)
             if step % cfg.log_every == 0 or step == cfg.steps:
@@ -463,6 +488,10 @@ def parse_args(argv: list[str]) -> tuple[DynTrainConfig, bool]:
     parser.add_argument("--run", default=None, help="run folder (default runs/dyn-<data>-...)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --run")
     parser.add_argument("--seed", type=int, default=None)
+    parser.add_argument(
+        "--batch-size", type=int, default=None, help="global batch (a multiple of the devices)"
+    )
+    parallel.add_distributed_args(parser)
     args = parser.parse_args(argv)
     if args.resume and args.run is None:
         parser.error("--resume needs --run DIR (the run folder to continue)")
@@ -479,12 +508,17 @@ def parse_args(argv: list[str]) -> tuple[DynTrainConfig, bool]:
         cfg = dataclasses.replace(cfg, steps=args.steps)
     if args.seed is not None:
         cfg = dataclasses.replace(cfg, seed=args.seed)
+    if args.batch_size is not None:
+        if args.batch_size < 1:
+            parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
+        cfg = dataclasses.replace(cfg, batch_size=args.batch_size)
     return cfg, args.resume
 
 
 def main(argv: list[str]) -> int:
     cfg, resume = parse_args(argv)
     try:
+        parallel.initialize_from_argv(argv)
         if resume:
             # The run's own configuration decides the model; --steps may extend it.
             saved = common.load_config(cfg.run, DynTrainConfig)

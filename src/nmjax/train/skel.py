@@ -33,7 +33,7 @@ from flax import nnx
 from nmjax import io, losses, metrics
 from nmjax.config import DATASETS, PRESETS, SkelTrainConfig, dataset_spec, skel_preset
 from nmjax.models.detector import KeypointDetector, check_detector_config
-from nmjax.train import common
+from nmjax.train import common, parallel
 
 BEST_METRIC = "val/loss"
 
@@ -124,13 +124,16 @@ def build(cfg: SkelTrainConfig, seed: int | None = None):
 
 
 class Steps:
-    """The jit-compiled train and eval steps of one configuration.
+    """The jit-compiled train and eval steps of one configuration, data-parallel on `mesh`.
 
-    `train_traces` counts how often the train step was traced (it must stay 1).
+    Batches are sharded over the mesh's "data" axis, the state and all outputs replicated
+    (`nmjax.train.parallel`); the default mesh spans every device. `train_traces` counts how often
+    the train step was traced (it must stay 1).
     """
 
-    def __init__(self, graphdef: Any, cfg: SkelTrainConfig):
+    def __init__(self, graphdef: Any, cfg: SkelTrainConfig, mesh: jax.sharding.Mesh | None = None):
         self.graphdef, self.weights = graphdef, cfg.weights
+        self.mesh = parallel.data_mesh() if mesh is None else mesh
         self.train_traces = 0
         self.train = jax.jit(self._train, donate_argnums=0)
         self.eval = jax.jit(self._eval)
@@ -139,6 +142,7 @@ class Steps:
         self, state: Any, voxels: jax.Array, joints: jax.Array | None = None
     ) -> tuple[Any, dict[str, jax.Array]]:
         self.train_traces += 1
+        voxels, joints = parallel.constrain_batch((voxels, joints), self.mesh)
         model, optimizer = nnx.merge(self.graphdef, state)
 
         def loss_fn(model: KeypointDetector):
@@ -147,31 +151,34 @@ class Steps:
         (loss, terms), grads = nnx.value_and_grad(loss_fn, has_aux=True)(model)
         optimizer.update(model, grads)
         scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms}
-        return nnx.state((model, optimizer)), scalars
+        return parallel.constrain_replicated((nnx.state((model, optimizer)), scalars), self.mesh)
 
     def _eval(
         self, state: Any, voxels: jax.Array, joints: jax.Array | None = None
     ) -> tuple[dict[str, jax.Array], jax.Array]:
+        voxels, joints = parallel.constrain_batch((voxels, joints), self.mesh)
         model, _ = nnx.merge(self.graphdef, state)
         out = model(voxels)
         loss, terms = losses.skeleton_loss(_with_joints(out, joints), self.weights)
-        return {"loss": loss, **terms}, out["keypoints"]
+        return parallel.constrain_replicated(({"loss": loss, **terms}, out["keypoints"]), self.mesh)
 
 
 _STEPS_CACHE: dict[tuple[Any, ...], Steps] = {}
 
 
-def get_steps(graphdef: Any, cfg: SkelTrainConfig) -> Steps:
+def get_steps(graphdef: Any, cfg: SkelTrainConfig, mesh: jax.sharding.Mesh | None = None) -> Steps:
     """The compiled steps of this configuration, shared within a process (a second run in the
     same process, e.g. a resume in a notebook or a test, compiles nothing).
 
-    Keyed by everything that shapes the graph: model, loss weights and optimizer settings; states
-    built from the same settings merge with the first run's graphdef.
+    Keyed by everything that shapes the graph: model, loss weights, optimizer settings and the
+    mesh (default: all devices); states built from the same settings merge with the first run's
+    graphdef.
     """
+    mesh = parallel.data_mesh() if mesh is None else mesh
     key = (cfg.model, cfg.weights, cfg.learning_rate, cfg.lr_milestones, cfg.lr_decay)
-    key += (cfg.clip_norm,)
+    key += (cfg.clip_norm, mesh)
     if key not in _STEPS_CACHE:
-        _STEPS_CACHE[key] = Steps(graphdef, cfg)
+        _STEPS_CACHE[key] = Steps(graphdef, cfg, mesh)
     return _STEPS_CACHE[key]
 
 
@@ -179,13 +186,27 @@ def _with_joints(outputs: dict[str, jax.Array], joints: jax.Array | None) -> dic
     return outputs if joints is None else {**outputs, "joints": joints}
 
 
-def supervision(steps: Steps, batch: dict[str, np.ndarray]) -> jax.Array | None:
+def supervision(steps: Steps, batch: dict[str, np.ndarray]) -> np.ndarray | None:
     """The batch's ground-truth joints when the loss is joint-supervised (vol_target="joints")."""
     if steps.weights.vol_target != "joints":
         return None
     if "joints" not in batch:
         raise ValueError("weights.vol_target='joints' needs a dataset with ground-truth joints")
-    return jnp.asarray(batch["joints"])
+    return batch["joints"]
+
+
+def step_inputs(
+    steps: Steps, batch: dict[str, np.ndarray], *, host_slice: bool = True
+) -> tuple[jax.Array, jax.Array | None]:
+    """(voxels, joints or None) of a batch as global arrays sharded over `steps.mesh`.
+
+    `host_slice`: the batch is this host's slice of the global batch (training); otherwise every
+    host holds the whole batch (validation).
+    """
+    inputs = (batch["voxels"], supervision(steps, batch))
+    if host_slice:
+        return parallel.host_batch_to_global(inputs, steps.mesh)
+    return parallel.global_array(inputs, steps.mesh)
 
 
 def model_of(graphdef: Any, state: Any) -> KeypointDetector:
@@ -193,7 +214,11 @@ def model_of(graphdef: Any, state: Any) -> KeypointDetector:
 
 
 def abstract_state(state: Any) -> Any:
-    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
+    """Shapes, dtypes and shardings of `state`: a restore target that keeps its placement."""
+    return jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)),
+        state,
+    )
 
 
 # --- validation --------------------------------------------------------------------------------
@@ -210,9 +235,7 @@ def validate(
     sc = metrics.SemanticConsistency()
     all_kp = []
     for batch in batches:
-        terms, keypoints = steps.eval(
-            state, jnp.asarray(batch["voxels"]), supervision(steps, batch)
-        )
+        terms, keypoints = steps.eval(state, *step_inputs(steps, batch, host_slice=False))
         for name, value in terms.items():
             sums[name] = sums.get(name, 0.0) + float(value)
         if "joints" in batch:
@@ -263,9 +286,12 @@ def train(
     from nmjax.data import pipeline
 
     check_config(cfg)
-    run = common.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
+    mesh = parallel.data_mesh()
+    parallel.check_batch_size(cfg.data.batch_size, "data.batch_size", mesh)
+    run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     graphdef, state = build(cfg)
-    steps = get_steps(graphdef, cfg)
+    state = parallel.replicate(state, mesh)
+    steps = get_steps(graphdef, cfg, mesh)
     graphdef = steps.graphdef
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
@@ -277,7 +303,7 @@ def train(
                 f"cannot resume {run}: it has no checkpoint yet; start it again with --overwrite"
             )
         start, state = ckpt.restore(abstract_state(state), data_iter=data_iter)
-    writer = common.MetricWriter(run, resume_step=start if resume else None)
+    writer = parallel.metric_writer(run, resume_step=start if resume else None)
     summary: dict[str, Any] = {"run": str(run), "start_step": start}
     pbar = tqdm(total=cfg.steps, initial=start, disable=not progress, dynamic_ncols=True)
     t_last, step_last = time.perf_counter(), start
@@ -288,9 +314,7 @@ def train(
             batch = next(data_iter)
             if step_hook is not None:
                 state = step_hook(step, state)
-            state, scalars = steps.train(
-                state, jnp.asarray(batch["voxels"]), supervision(steps, batch)
-            )
+            state, scalars = steps.train(state, *step_inputs(steps, batch))
             step += 1
             loss = float(scalars["loss"])
             if not math.isfinite(loss):
@@ -334,7 +358,9 @@ def train(
 def _validation_figure(run, step, graphdef, state, val_batches, val_kp) -> None:
     from nmjax import viz
 
-    affinity = np.asarray(model_of(graphdef, state).affinity())
+    affinity = np.asarray(model_of(graphdef, state).affinity())  # on every host: a collective
+    if not parallel.is_primary():
+        return
     viz.plot_keypoints(
         run / "figures" / f"keypoints_{step:07d}.png",
         val_batches[0]["voxels"][0, 0],
@@ -348,10 +374,16 @@ def _validation_figure(run, step, graphdef, state, val_batches, val_kp) -> None:
 
 
 def write_artifacts(run: Path, graphdef: Any, state: Any, val_batches, steps: Steps) -> None:
-    """affinity.npy, keypoint_stats.npz, then skeleton.json and keypoints_{train,test}.npz."""
+    """affinity.npy, keypoint_stats.npz, then skeleton.json and keypoints_{train,test}.npz.
+
+    Every host takes part in the computations on the (global) state; only process 0 writes.
+    """
     model = model_of(graphdef, state)
-    io.save_npy(run / "affinity.npy", np.asarray(model.affinity(), np.float32))
+    affinity = np.asarray(model.affinity(), np.float32)
     _, keypoints = validate(steps, state, val_batches)
+    if not parallel.is_primary():
+        return
+    io.save_npy(run / "affinity.npy", affinity)
     flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
     io.save_npz(
         run / "keypoint_stats.npz",
@@ -419,6 +451,7 @@ def export_keypoints(
     if model is None:
         model, cfg = load_detector(run)
     graphdef, state = nnx.split(model)
+    state = parallel.to_local(state)  # a trained state may be replicated over several hosts
 
     @jax.jit
     def detect(state, voxels):
@@ -468,6 +501,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
         help="override any config field, e.g. --set model.channels=16 --set weights.vol=1.0",
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parallel.add_distributed_args(parser)
     return parser.parse_args(list(argv))
 
 
@@ -494,6 +528,9 @@ def config_from_args(args: argparse.Namespace) -> SkelTrainConfig:
 def main(argv: Sequence[str]) -> int:
     args = parse_args(argv)
     try:
+        parallel.initialize_distributed(
+            args.coordinator_address, args.num_processes, args.process_id
+        )
         cfg = config_from_args(args)
     except (ValueError, FileNotFoundError) as err:
         print(f"train-skel: {err}", file=sys.stderr)

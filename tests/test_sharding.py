@@ -147,6 +147,7 @@ def _script_dyn(workdir: Path) -> dict:
     import jax.numpy as jnp
     from jax.sharding import PartitionSpec as P
 
+    from nmjax import io
     from nmjax.train import dyn, parallel
 
     cfg = _dyn_cfg()
@@ -181,10 +182,19 @@ def _script_dyn(workdir: Path) -> dict:
     np.testing.assert_allclose(loss2, loss1, rtol=1e-4, atol=1e-5)
     x = seen["sharded"]
     np.testing.assert_array_equal(np.asarray(x), np.asarray(seen["single"]))
+    # A phase-1 run folder (contract C10) for the trainer, which must refuse batch 3 up front.
+    skel_run = workdir / "skel-synth-arm-1"
+    skel_run.mkdir()
+    io.write_json(
+        skel_run / "skeleton.json",
+        {"parents": list(PARENTS), "root": 0, "order": list(ORDER), "depth": 3},
+    )
+    for split in ("train", "test"):
+        io.save_npz(skel_run / f"keypoints_{split}.npz", seq=poses)
     refusal = ""
+    odd = dataclasses.replace(_dyn_cfg(3), skel_run=str(skel_run), run=str(workdir / "odd"))
     try:
-        mesh = parallel.data_mesh()
-        parallel.check_batch_size(3, "batch_size", mesh)
+        dyn.train(odd, progress=False)
     except ValueError as err:
         refusal = str(err)
     return {
@@ -197,6 +207,7 @@ def _script_dyn(workdir: Path) -> dict:
         "batch_devices": len({s.device for s in x.addressable_shards}),
         "gathered_finite": bool(jnp.all(jnp.isfinite(x))),
         "refusal": refusal,
+        "odd_run_created": (workdir / "odd").exists(),
     }
 
 
@@ -231,7 +242,7 @@ def test_phase1_sharded_step_equals_single_device_step(tmp_path):
     assert out["restored_replicated"]
     assert all(np.isfinite(out["losses"][0]))
     assert "data.batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
-    assert "multiple of 2" in out["refusal"]
+    assert "multiple of 2" in out["refusal"] and "--set data.batch_size=4" in out["refusal"]
     assert not out["odd_run_created"]  # refused before the run folder or any compilation
 
 
@@ -243,6 +254,7 @@ def test_phase2_sharded_step_equals_single_device_step(tmp_path):
     assert out["batch_devices"] == 2 and [s[0] for s in out["batch_shards"]] == [2, 2]
     assert out["gathered_finite"]
     assert "batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
+    assert "--batch-size 4" in out["refusal"] and not out["odd_run_created"]
 
 
 def test_one_device_refuses_nothing_and_mesh_has_the_data_axis():
@@ -307,6 +319,64 @@ def test_trainer_commands_accept_and_check_the_distributed_flags(capsys):
     assert "--num-processes" in capsys.readouterr().err
     cfg, _ = dyn.parse_args(["--batch-size", "6", "--process-id", "0"])
     assert cfg.batch_size == 6
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.mark.slow
+def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
+    """Two processes with one CPU device each (jax.distributed on localhost, each feeding its
+    half of every batch) log exactly the losses of one process with two devices."""
+    from nmjax.data import synthetic
+
+    root = synthetic.generate(
+        "synth-arm", tmp_path / "data", num_sequences=2, frames=6, points=500, progress=False
+    )
+    argv = [sys.executable, "-m", "nmjax.cli", "train-skel", "--data", "synth-arm"]
+    argv += ["--preset", "tiny", "--root", str(root), "--steps", "3", "--no-progress"]
+    for change in ("data.grid=8", "model.grid=8", "model.channels=4", "data.frames=3"):
+        argv += ["--set", change]
+    argv += ["--set", "model.hourglass_channels=4,4,4", "--set", "val_every=3"]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    one = subprocess.run(
+        [*argv, "--run", str(tmp_path / "one")],
+        env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"},
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert one.returncode == 0, one.stderr[-3000:]
+    hosts = ["--coordinator-address", f"localhost:{_free_port()}", "--num-processes", "2"]
+    procs = [
+        subprocess.Popen(
+            [*argv, "--run", str(tmp_path / "two"), *hosts, "--process-id", str(i)],
+            env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=1"},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in (0, 1)
+    ]
+    outputs = [proc.communicate(timeout=600) for proc in procs]
+    for proc, (_, err) in zip(procs, outputs, strict=True):
+        assert proc.returncode == 0, err[-3000:]
+    from nmjax.train import common
+
+    expected, got = common.read_metrics(tmp_path / "one"), common.read_metrics(tmp_path / "two")
+    assert [r["step"] for r in got] == [r["step"] for r in expected]
+    for a, b in zip(got, expected, strict=True):
+        assert a.keys() == b.keys()
+        for key in a:
+            if key != "train/steps_per_s":
+                assert a[key] == pytest.approx(b[key], rel=1e-5, abs=1e-6), key
+    assert (tmp_path / "two" / "skeleton.json").is_file()
+    assert (tmp_path / "two" / "keypoints_test.npz").is_file()
 
 
 if __name__ == "__main__":

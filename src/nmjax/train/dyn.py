@@ -390,7 +390,7 @@ def train(
             )
     cfg = dataclasses.replace(cfg, skel_run=str(skel_dir))
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh)
+    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
     run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
 

@@ -178,13 +178,14 @@ def replicated(mesh: Mesh) -> NamedSharding:
     return NamedSharding(mesh, P())
 
 
-def check_batch_size(batch_size: int, field: str, mesh: Mesh) -> None:
+def check_batch_size(batch_size: int, field: str, mesh: Mesh, option: str | None = None) -> None:
     """Refuses a global batch that does not split evenly over the mesh (before compiling).
 
     Args:
       batch_size: the global batch size B.
       field: the config field it comes from, named in the message (e.g. "data.batch_size").
       mesh: the data mesh.
+      option: the command-line option that sets it, for the fix (e.g. "--batch-size ").
     """
     devices = mesh.devices.size
     if batch_size < 1 or batch_size % devices:
@@ -192,7 +193,8 @@ def check_batch_size(batch_size: int, field: str, mesh: Mesh) -> None:
         raise ValueError(
             f"{field} = {batch_size} is the global batch, split evenly over {devices} devices "
             f"({jax.process_count()} host(s)), so it must be a positive multiple of {devices}; "
-            f"set {field} to e.g. {suggestion}, or run on fewer devices (CUDA_VISIBLE_DEVICES)"
+            f"set {option or field + ' to '}{suggestion} for example, or run on fewer devices "
+            "(CUDA_VISIBLE_DEVICES)"
         )
 
 

@@ -287,7 +287,9 @@ def train(
 
     check_config(cfg)
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(cfg.data.batch_size, "data.batch_size", mesh)
+    parallel.check_batch_size(
+        cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
+    )
     run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     graphdef, state = build(cfg)
     state = parallel.replicate(state, mesh)

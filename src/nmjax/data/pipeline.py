@@ -25,6 +25,7 @@ import dataclasses
 from collections.abc import Iterator
 
 import grain
+import jax
 import numpy as np
 from absl import flags
 
@@ -108,9 +109,12 @@ def _dataset(
     index, count = shard
     batch_size = cfg.batch_size
     if count > 1:
-        from nmjax.train.parallel import host_share
-
-        batch_size = host_share(cfg.batch_size, "data.batch_size", count)
+        if cfg.batch_size % count:
+            raise ValueError(
+                f"data.batch_size = {cfg.batch_size} must be a multiple of the number of hosts "
+                f"({count}), each host loading data.batch_size / {count} crops per step"
+            )
+        batch_size = cfg.batch_size // count
         ds = ds[index::count]
     buffer = max(cfg.prefetch, 1) * batch_size
     threads = 1 if cfg.prefetch > 0 else 0
@@ -148,8 +152,6 @@ def skel_iterator(
     if cfg.batch_size < 1:
         raise ValueError(f"DataConfig.batch_size must be >= 1, got {cfg.batch_size}")
     if process_index is None or process_count is None:
-        import jax
-
         process_index, process_count = jax.process_index(), jax.process_count()
     if not 0 <= process_index < process_count:
         raise ValueError(f"process_index {process_index} is not in 0..{process_count - 1}")

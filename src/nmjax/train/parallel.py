@@ -198,17 +198,6 @@ def check_batch_size(batch_size: int, field: str, mesh: Mesh, option: str | None
         )
 
 
-def host_share(batch_size: int, field: str, process_count: int | None = None) -> int:
-    """This host's part of a global batch: B / process count (it must divide evenly)."""
-    count = jax.process_count() if process_count is None else process_count
-    if batch_size < 1 or batch_size % count:
-        raise ValueError(
-            f"{field} = {batch_size} must be a positive multiple of the number of hosts "
-            f"({count}), each host loading {field} / {count} examples per step"
-        )
-    return batch_size // count
-
-
 def host_batch_to_global(local: Any, mesh: Mesh) -> Any:
     """Each host's slice of a batch (leaves (B / hosts, ...)) -> global (B, ...) on P("data").
 

@@ -136,6 +136,13 @@ class DetectorConfig:
     sigma_g: float = 1.5
     num_affinity: int = 2  # N
     decoder_sharpness: float = 10.0
+    # Initial fusion of the frame and spatio-temporal heatmaps, z = w_frame h + w_st h_st + b,
+    # heatmap = softplus(z): (w_frame, w_st, b). A negative b starts softplus in its exponential
+    # regime (a normalised heatmap is then a spatial softmax of the features); at b = 0 the
+    # constant softplus(0) = 0.69 dominates and keypoints sit at the grid centre until Adam has
+    # moved b by a few units. w_st = 0 lets the frame branch learn to localise first: started
+    # equal, the wider spatio-temporal branch wins and every keypoint stays still over time.
+    fuse_init: tuple[float, float, float] = (1.0, 0.0, -4.0)
 
 
 @dataclass(frozen=True)

@@ -53,11 +53,26 @@ class VoxelDecoder(nnx.Module):
         )
         self.out = Conv3D(c4, 1, 1, rngs=rngs)
 
-    def __call__(self, x: jax.Array) -> jax.Array:
-        x = nnx.leaky_relu(self.inp(x), LEAK)
-        x = self.up1(upsample_trilinear(x))
+    def __call__(self, maps: jax.Array, context: jax.Array) -> jax.Array:
+        """Raw logits of every frame.
+
+        Args:
+          maps: (B, T, g, g, g, K) gaussian maps g_t of each frame.
+          context: (B, g, g, g, C + K + 3) [c_1, g_1, coords], the same for all frames of a crop.
+
+        Returns:
+          (B, T, G, G, G) raw logits.
+        """
+        b, t, k = maps.shape[0], maps.shape[1], maps.shape[-1]
+        # The 1x1x1 input conv is linear: its share of the frame-independent channels is computed
+        # once per crop and broadcast over time instead of concatenated to every frame.
+        w = self.inp.kernel[...][0, 0, 0]  # (K + C + K + 3, C), rows in input-channel order
+        shared = context @ w[k:] + self.inp.bias[...]  # (B, g, g, g, C)
+        x = nnx.leaky_relu(maps @ w[:k] + shared[:, None], LEAK)
+        x = self.up1(upsample_trilinear(x.reshape(b * t, *x.shape[2:])))
         x = self.up2(upsample_trilinear(x))
-        return self.out(x)[..., 0]
+        raw = self.out(x)[..., 0]
+        return raw.reshape(b, t, *raw.shape[1:])
 
 
 class KeypointDetector(nnx.Module):
@@ -81,7 +96,15 @@ class KeypointDetector(nnx.Module):
         self.st_features = FeatureNet(2 * c, hg, cfg.grid, rngs=rngs)
         self.heat = Conv3D(c, k, 1, rngs=rngs)
         self.st_heat = Conv3D(2 * c, k, 1, rngs=rngs)
-        self.fuse = nnx.Linear(2, 1, rngs=rngs)  # a 1x1x1 conv over the 2 stacked heatmaps
+        # A 1x1x1 conv over the 2 stacked heatmaps, initialised as `cfg.fuse_init` says.
+        w_frame, w_st, bias = cfg.fuse_init
+        self.fuse = nnx.Linear(
+            2,
+            1,
+            kernel_init=lambda *_: jnp.array([[w_frame], [w_st]], jnp.float32),
+            bias_init=nnx.initializers.constant(bias),
+            rngs=rngs,
+        )
         self.decoder = VoxelDecoder(2 * k + c + 3, c, rngs=rngs)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
 
@@ -121,14 +144,10 @@ class KeypointDetector(nnx.Module):
         Returns:
           (B, T, G, G, G) probabilities sigmoid(s (tanh(raw) + v_1 - 0.5)).
         """
-        b, t, k = keypoints.shape[:3]
         g = first_features.shape[1]
         maps = kp_lib.gaussian_maps(keypoints, self.cfg.sigma_g, g)  # (B, T, g, g, g, K)
-        context = jnp.concatenate([first_features, maps[:, 0]], axis=-1)  # (B, g, g, g, C+K)
-        context = jnp.broadcast_to(context[:, None], (b, t, *context.shape[1:]))
-        x = kp_lib.add_coord_channels(jnp.concatenate([maps, context], axis=-1))
-        raw = self.decoder(x.reshape(b * t, *x.shape[2:]))  # (B*T, G, G, G)
-        raw = raw.reshape(b, t, *raw.shape[1:])
+        context = kp_lib.add_coord_channels(jnp.concatenate([first_features, maps[:, 0]], axis=-1))
+        raw = self.decoder(maps, context)  # (B, T, G, G, G)
         sharp = self.cfg.decoder_sharpness
         return jax.nn.sigmoid(sharp * (jnp.tanh(raw) + first_voxels[:, None] - 0.5))
 

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "retarget": ("nmjax.commands.retarget", "retarget a test motion onto a mesh (Eqs. 24-25, LBS)"),
     "evaluate": ("nmjax.evaluate", "SC-score, 4D-tracking Chamfer, interpolation M-CD"),
+    "bench": ("nmjax.bench", "steps/s, load vs compute, compile time, memory of the train steps"),
 }
 
 

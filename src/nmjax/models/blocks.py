@@ -7,6 +7,10 @@ Every block takes a batch (B, X, Y, Z, C); callers fold time into the batch axis
 depth offsets of 2D convolutions (x, y, z) -> ((B x), y, z); the strided 2x2x2 "pool" is a
 space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul and a
 depth-to-space reshape. On GPU/TPU backends the native convolution is used.
+
+`Conv3D.compute_dtype` ("float32" or "bfloat16", set for a whole model by `set_compute_dtype`)
+is the precision of the convolution itself: input and kernel are cast to it and the result cast
+back to float32, so parameters, normalisation and everything downstream stay float32.
 """
 
 from __future__ import annotations
@@ -33,6 +37,22 @@ _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
 # compiles to fewer operations.
 SLICED_CONV_MIN_SIZE = 1 << 18
 _NHWC = ("NHWC", "HWIO", "NHWC")
+COMPUTE_DTYPES = ("float32", "bfloat16")
+
+
+def check_compute_dtype(name: str) -> None:
+    """Raises ValueError unless `name` is one of COMPUTE_DTYPES (field model.compute_dtype)."""
+    if name not in COMPUTE_DTYPES:
+        raise ValueError(
+            f"model.compute_dtype must be one of {', '.join(COMPUTE_DTYPES)}, got {name!r}"
+        )
+
+
+def in_compute_dtype(name: str, *arrays: jax.Array) -> tuple[jax.Array, ...]:
+    """`arrays` cast to the compute dtype `name` ("float32" leaves them as they are)."""
+    if name == "float32":
+        return arrays
+    return tuple(a.astype(jnp.dtype(name)) for a in arrays)
 
 
 def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -97,7 +117,8 @@ class Conv3D(nnx.Module):
 
     kernel=k, stride=1: ordinary convolution (odd k). kernel=2, stride=2: strided convolution
     halving each axis ("pool"). transpose=True, kernel=2, stride=2: transposed convolution
-    doubling each axis. Initialisation as `nnx.Conv` (LeCun normal, zero bias).
+    doubling each axis. Initialisation as `nnx.Conv` (LeCun normal, zero bias). The convolution
+    runs in `compute_dtype` (static attribute, "float32" or "bfloat16"); the result is float32.
     """
 
     def __init__(
@@ -120,9 +141,10 @@ class Conv3D(nnx.Module):
         shape = (kernel, kernel, kernel, in_ch, out_ch)
         self.kernel = nnx.Param(lecun_normal(rngs.params(), shape))
         self.bias = nnx.Param(jnp.zeros((out_ch,), jnp.float32))
+        self.compute_dtype = "float32"
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        w = self.kernel[...]
+        x, w = in_compute_dtype(self.compute_dtype, x, self.kernel[...])
         k = self.kernel_size
         if k == 1:
             y = jnp.einsum("...i,io->...o", x, w[0, 0, 0])
@@ -132,7 +154,15 @@ class Conv3D(nnx.Module):
             y = space_to_depth(x) @ w.reshape(-1, w.shape[-1])
         else:
             y = conv3d_same(x, w)
-        return y + self.bias[...]
+        return y.astype(jnp.float32) + self.bias[...]
+
+
+def set_compute_dtype(model: nnx.Module, name: str) -> None:
+    """Sets `compute_dtype` of every `Conv3D` inside `model` ("float32" or "bfloat16")."""
+    check_compute_dtype(name)
+    for _, module in nnx.iter_modules(model):
+        if isinstance(module, Conv3D):
+            module.compute_dtype = name
 
 
 class ConvNormAct(nnx.Module):
@@ -265,9 +295,13 @@ class FeatureNet(nnx.Module):
         self.res2 = ResBlock(c2, channels, rngs=rngs)
 
     def __call__(self, voxels: jax.Array) -> jax.Array:
+        dtype = self.stem.conv.compute_dtype
         w = self.stem.conv.kernel[...]  # (5, 5, 5, 1 + 3, C/4)
         coords = coord_grid(voxels.shape[1])[None]  # (1, G, G, G, 3)
-        x = conv3d_same(voxels[..., None], w[..., :1, :]) + conv3d_same(coords, w[..., 1:, :])
+        v, c, wv, wc = in_compute_dtype(
+            dtype, voxels[..., None], coords, w[..., :1, :], w[..., 1:, :]
+        )
+        x = (conv3d_same(v, wv) + conv3d_same(c, wc)).astype(jnp.float32)
         x = nnx.leaky_relu(self.stem.norm(x + self.stem.conv.bias[...]), LEAK)
         x = self.res1(self.pool1(x))
         return self.res2(self.hourglass(self.pool2(x)))

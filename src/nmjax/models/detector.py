@@ -16,7 +16,16 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax import losses
 from nmjax.config import DetectorConfig
-from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet, upsample_trilinear
+from nmjax.models.blocks import (
+    LEAK,
+    Conv3D,
+    ConvNormAct,
+    FeatureNet,
+    check_compute_dtype,
+    in_compute_dtype,
+    set_compute_dtype,
+    upsample_trilinear,
+)
 
 
 def check_detector_config(cfg: DetectorConfig) -> None:
@@ -37,6 +46,7 @@ def check_detector_config(cfg: DetectorConfig) -> None:
         raise ValueError(f"model.num_affinity (N) must be >= 1, got {cfg.num_affinity}")
     if cfg.sigma_g <= 0:
         raise ValueError(f"model.sigma_g must be positive, got {cfg.sigma_g}")
+    check_compute_dtype(cfg.compute_dtype)
 
 
 class VoxelDecoder(nnx.Module):
@@ -67,8 +77,9 @@ class VoxelDecoder(nnx.Module):
         # The 1x1x1 input conv is linear: its share of the frame-independent channels is computed
         # once per crop and broadcast over time instead of concatenated to every frame.
         w = self.inp.kernel[...][0, 0, 0]  # (K + C + K + 3, C), rows in input-channel order
-        shared = context @ w[k:] + self.inp.bias[...]  # (B, g, g, g, C)
-        x = nnx.leaky_relu(maps @ w[:k] + shared[:, None], LEAK)
+        maps, context, w = in_compute_dtype(self.inp.compute_dtype, maps, context, w)
+        shared = (context @ w[k:]).astype(jnp.float32) + self.inp.bias[...]  # (B, g, g, g, C)
+        x = nnx.leaky_relu((maps @ w[:k]).astype(jnp.float32) + shared[:, None], LEAK)
         x = self.up1(upsample_trilinear(x.reshape(b * t, *x.shape[2:])))
         x = self.up2(upsample_trilinear(x))
         raw = self.out(x)[..., 0]
@@ -107,6 +118,7 @@ class KeypointDetector(nnx.Module):
         )
         self.decoder = VoxelDecoder(2 * k + c + 3, c, rngs=rngs)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
+        set_compute_dtype(self, cfg.compute_dtype)
 
     def affinity(self) -> jax.Array:
         """(N, K, K) row-softmaxed affinity with zero diagonal (Eq. 12)."""

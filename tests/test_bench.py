@@ -1,0 +1,162 @@
+"""`nmjax bench`, the plain/fast pairs of the optimisation benchmark, and bfloat16 convolutions."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import nnx
+
+from nmjax import bench, losses
+from nmjax.config import skel_preset
+from nmjax.models.blocks import Conv3D, set_compute_dtype
+from nmjax.models.detector import KeypointDetector, check_detector_config
+
+ROW_KEYS = {
+    "phase",
+    "preset",
+    "B",
+    "T",
+    "K",
+    "compute_dtype",
+    "steps",
+    "steps_per_s",
+    "frames_per_s",
+    "load_s_per_step",
+    "compute_s_per_step",
+    "compile_s",
+    "memory",
+    "data",
+}
+
+
+@pytest.fixture(scope="module")
+def arm_root(tmp_path_factory):
+    from nmjax.data import synthetic
+
+    root = tmp_path_factory.mktemp("data")
+    return synthetic.generate(
+        "synth-arm", root, num_sequences=3, frames=12, points=1500, progress=False
+    )
+
+
+def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    argv = ["--preset", "tiny", "--steps", "2", "--warmup", "0", "--compute-dtype", "bfloat16"]
+    argv += ["--set", f"skel:data.root={arm_root}", "--set", "dyn:batch_size=2"]
+    argv += ["--set", "skel:data.grid=8", "--set", "skel:model.grid=8"]  # fewer ops to compile
+    assert bench.main([*argv, "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    env = result["environment"]
+    assert env["jax"] == jax.__version__ and env["cpu_count"] >= 1 and env["device_count"] >= 1
+    assert {"devices", "backend", "load_avg_1min"} <= set(env)
+    skel_row, dyn_row = result["rows"]
+    for row in (skel_row, dyn_row):
+        assert ROW_KEYS <= set(row)
+        assert row["steps"] == 2
+        for key in ("steps_per_s", "frames_per_s", "compute_s_per_step", "compile_s"):
+            assert row[key] > 0, key
+        assert row["frames_per_s"] == pytest.approx(row["steps_per_s"] * row["B"] * row["T"])
+        total = row["load_s_per_step"] + row["compute_s_per_step"]
+        assert row["steps_per_s"] == pytest.approx(1 / total)
+        mem = row["memory"]
+        assert all(mem[k] >= 0 for k in bench.MEMORY_KEYS) and mem["argument_bytes"] > 0
+        assert mem.get("peak_bytes_in_use", mem.get("peak_rss_bytes", 0)) > 0
+    assert (skel_row["phase"], skel_row["compute_dtype"], skel_row["B"]) == ("skel", "bfloat16", 2)
+    assert skel_row["load_s_per_step"] > 0
+    assert (dyn_row["phase"], dyn_row["B"], dyn_row["load_s_per_step"]) == ("dyn", 2, 0.0)
+    table = capsys.readouterr().out
+    assert "steps/s" in table and "tiny/nm" in table
+
+
+def test_split_overrides_by_phase():
+    items = ["skel:model.channels=16", "dyn:batch_size=8", "seed=3"]
+    assert bench._split_overrides(items, "skel") == ["model.channels=16", "seed=3"]
+    assert bench._split_overrides(items, "dyn") == ["batch_size=8", "seed=3"]
+
+
+def test_bench_refuses_bad_override(capsys):
+    assert bench.main(["--phase", "dyn", "--preset", "tiny", "--set", "dyn:nope=1"]) == 2
+    assert "nope" in capsys.readouterr().err
+
+
+def test_optimisations_agree_with_plain_forms():
+    """Each optimisation computes the same function (values and gradients) as its plain form."""
+    cases = bench.optimisation_cases("tiny")
+    assert {c.name[1] for c in cases} == set("abcd")
+    for case in cases:
+        plain, fast = case.plain(*case.args), case.fast(*case.args)
+        assert plain.shape == fast.shape, case.name
+        scale = float(jnp.max(jnp.abs(plain)))
+        np.testing.assert_allclose(fast, plain, atol=1e-5 * scale, err_msg=case.name)
+        (pv, pg), (fv, fg) = (
+            bench.forward_backward(f, case.args)(*case.args) for f in (case.plain, case.fast)
+        )
+        np.testing.assert_allclose(fv, pv, rtol=1e-4, err_msg=case.name)
+        for a, b in zip(jax.tree.leaves(pg), jax.tree.leaves(fg), strict=True):
+            np.testing.assert_allclose(b, a, atol=1e-4 * float(jnp.max(jnp.abs(a))) + 1e-7)
+
+
+def test_plain_gaussian_maps_against_numpy():
+    kp = np.array([[0.1, -0.3, 0.5, 0.7], [-0.6, 0.2, 0.0, 1.0]], np.float32)
+    n, sigma = 5, 1.5
+    axis = np.linspace(-1, 1, n)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    expected = np.stack(
+        [
+            a * np.exp(-((x - mx) ** 2 + (y - my) ** 2 + (z - mz) ** 2) / (2 * (sigma / n) ** 2))
+            for mx, my, mz, a in kp
+        ],
+        axis=-1,
+    )
+    np.testing.assert_allclose(
+        bench.plain_gaussian_maps(jnp.asarray(kp), sigma, n), expected, rtol=1e-5, atol=1e-7
+    )
+
+
+def test_conv3d_computes_in_bfloat16_and_returns_float32():
+    conv = Conv3D(3, 4, 3, rngs=nnx.Rngs(0))
+    x = jnp.asarray(np.random.default_rng(0).normal(size=(2, 6, 6, 6, 3)), jnp.float32)
+    ref = conv(x)
+    set_compute_dtype(conv, "bfloat16")
+    out = conv(x)
+    assert out.dtype == jnp.float32 and conv.kernel[...].dtype == jnp.float32
+    assert "bf16" in str(jax.make_jaxpr(conv)(x))
+    assert not np.array_equal(out, ref)
+    np.testing.assert_allclose(out, ref, atol=0.05 * float(jnp.max(jnp.abs(ref))))
+    with pytest.raises(ValueError, match="model.compute_dtype"):
+        set_compute_dtype(conv, "float16")
+
+
+def test_bfloat16_detector_close_to_float32_with_float32_params_and_losses():
+    cfg = skel_preset("synth-arm", "tiny")
+    f32 = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
+    bf16_cfg = dataclasses.replace(cfg.model, compute_dtype="bfloat16")
+    bf16 = KeypointDetector(bf16_cfg, rngs=nnx.Rngs(0))
+    voxels = (np.random.default_rng(0).random((1, 4, 16, 16, 16)) > 0.7).astype(np.float32)
+    (g32, s32), (g16, s16) = nnx.split(f32), nnx.split(bf16)
+
+    @jax.jit
+    def both(s32, s16, v):  # one compilation instead of two slow eager passes
+        return nnx.merge(g32, s32)(v), nnx.merge(g16, s16)(v)
+
+    ref, out = both(s32, s16, jnp.asarray(voxels))
+    for name in ("recon", "heatmaps", "keypoints", "affinity"):
+        assert out[name].dtype == jnp.float32, name
+        np.testing.assert_allclose(out[name], ref[name], atol=0.1, err_msg=name)
+    assert not np.array_equal(out["recon"], ref["recon"])
+    assert {x.dtype for x in jax.tree.leaves(nnx.state(bf16, nnx.Param))} == {jnp.dtype("float32")}
+    total, terms = losses.skeleton_loss(out, cfg.weights)
+    ref_total, _ = losses.skeleton_loss(ref, cfg.weights)
+    assert total.dtype == jnp.float32 and all(v.dtype == jnp.float32 for v in terms.values())
+    np.testing.assert_allclose(total, ref_total, rtol=0.05)
+
+
+def test_detector_config_refuses_unknown_compute_dtype():
+    cfg = dataclasses.replace(skel_preset("synth-arm", "tiny").model, compute_dtype="half")
+    with pytest.raises(ValueError, match="model.compute_dtype"):
+        check_detector_config(cfg)

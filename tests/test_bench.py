@@ -73,6 +73,29 @@ def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
     assert "steps/s" in table and "tiny/nm" in table
 
 
+def test_each_job_argv_reproduces_its_row_config():
+    args = bench.parse_args(
+        ["--preset", "tiny", "cpu", "--dyn-model", "nm", "vrnn", "--set", "skel:seed=4"]
+        + ["--set", "dyn:batch_size=8", "--compute-dtype", "bfloat16", "--keypoints", "7"]
+    )
+    todo = bench.jobs(args)
+    assert todo == [
+        ("skel", "tiny", None),
+        ("skel", "cpu", None),
+        ("dyn", "tiny", "nm"),
+        ("dyn", "tiny", "vrnn"),
+        ("dyn", "cpu", "nm"),
+        ("dyn", "cpu", "vrnn"),
+    ]
+    for phase, preset, model in todo:
+        one = bench.parse_args(bench.job_argv(args, phase, preset, model))
+        assert bench.jobs(one) == [(phase, preset, model)]
+        assert bench.configs(one, phase, preset) == bench.configs(args, phase, preset)
+        assert (one.steps, one.warmup, one.keypoints) == (args.steps, args.warmup, 7)
+    assert bench.configs(args, "skel", "tiny").model.compute_dtype == "bfloat16"
+    assert bench.configs(args, "dyn", "cpu").batch_size == 8
+
+
 def test_split_overrides_by_phase():
     items = ["skel:model.channels=16", "dyn:batch_size=8", "seed=3"]
     assert bench._split_overrides(items, "skel") == ["model.channels=16", "seed=3"]
@@ -89,13 +112,12 @@ def test_optimisations_agree_with_plain_forms():
     cases = bench.optimisation_cases("tiny")
     assert {c.name[1] for c in cases} == set("abcd")
     for case in cases:
-        plain, fast = case.plain(*case.args), case.fast(*case.args)
+        ((pv, plain), pg), ((fv, fast), fg) = (
+            bench.forward_backward(f, case.args)(*case.args) for f in (case.plain, case.fast)
+        )
         assert plain.shape == fast.shape, case.name
         scale = float(jnp.max(jnp.abs(plain)))
         np.testing.assert_allclose(fast, plain, atol=1e-5 * scale, err_msg=case.name)
-        (pv, pg), (fv, fg) = (
-            bench.forward_backward(f, case.args)(*case.args) for f in (case.plain, case.fast)
-        )
         np.testing.assert_allclose(fv, pv, rtol=1e-4, err_msg=case.name)
         for a, b in zip(jax.tree.leaves(pg), jax.tree.leaves(fg), strict=True):
             np.testing.assert_allclose(b, a, atol=1e-4 * float(jnp.max(jnp.abs(a))) + 1e-7)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import resource
 import sys
@@ -131,7 +132,7 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
     load_sequences(cfg.data.name, "train", cfg.data.root)  # generates a synthetic set, untimed
     mesh = parallel.data_mesh()
     parallel.check_batch_size(
-        cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
+        cfg.data.batch_size, "data.batch_size", mesh, "--set skel:data.batch_size="
     )
     graphdef, state = skel.build(cfg)
     state = parallel.replicate(state, mesh)
@@ -188,7 +189,7 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
     from nmjax.train import dyn, parallel
 
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--set batch_size=")
+    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--set dyn:batch_size=")
     parents, order = hand_tree(num_keypoints)
     table = dyn.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames)
     poses, starts, key = parallel.replicate((*table, jax.random.key(cfg.seed)), mesh)
@@ -313,6 +314,12 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument(
         "--keypoints", type=int, default=None, help="phase-2 K (default: the dataset's K)"
     )
+    parser.add_argument(
+        "--same-process",
+        action="store_true",
+        help="measure every row in this process (default: one fresh process per row, so that "
+        "each row's peak memory is its own)",
+    )
     parser.add_argument("--out", default=None, help="write the header and rows as JSON here")
     args = parser.parse_args(list(argv))
     if args.steps < 1 or args.warmup < 0:
@@ -320,32 +327,76 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     return args
 
 
-def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[str, Any]:
-    """Runs every (phase, preset[, model]) row; returns {"environment": ..., "rows": [...]}."""
-    from nmjax.config import dataset_spec
-
-    env = environment()
-    emit(" ".join(f"{k}={v}" for k, v in env.items()))
-    rows = []
+def jobs(args: argparse.Namespace) -> list[tuple[str, str, str | None]]:
+    """(phase, preset, phase-2 model or None) of every row, in output order."""
+    out: list[tuple[str, str, str | None]] = []
     for phase in args.phase:
         for preset in args.preset:
-            cfg = configs(args, phase, preset)
-            if phase == "skel":
-                new = [bench_skel(cfg, preset, args.steps, args.warmup)]
-            else:
-                k = args.keypoints or dataset_spec(args.data).num_keypoints
-                new = [
-                    bench_dyn(
-                        dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=m)),
-                        preset,
-                        k,
-                        args.steps,
-                        args.warmup,
-                    )
-                    for m in args.dyn_model
-                ]
-            rows += new
-            emit("\n".join(format_table(new).splitlines()[2:]))
+            models = args.dyn_model if phase == "dyn" else [None]
+            out += [(phase, preset, model) for model in models]
+    return out
+
+
+def job_argv(args: argparse.Namespace, phase: str, preset: str, model: str | None) -> list[str]:
+    """The `nmjax bench` arguments that run exactly one row of `args`."""
+    argv = ["--phase", phase, "--preset", preset, "--data", args.data]
+    argv += ["--steps", str(args.steps), "--warmup", str(args.warmup)]
+    for item in args.overrides:
+        argv += ["--set", item]
+    if args.compute_dtype is not None:
+        argv += ["--compute-dtype", args.compute_dtype]
+    if model is not None:
+        argv += ["--dyn-model", model]
+    if args.keypoints is not None:
+        argv += ["--keypoints", str(args.keypoints)]
+    return argv
+
+
+def run_job(args: argparse.Namespace, phase: str, preset: str, model: str | None) -> dict:
+    """One row, measured in this process."""
+    from nmjax.config import dataset_spec
+
+    cfg = configs(args, phase, preset)
+    if phase == "skel":
+        return bench_skel(cfg, preset, args.steps, args.warmup)
+    k = args.keypoints or dataset_spec(args.data).num_keypoints
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=model))
+    return bench_dyn(cfg, preset, k, args.steps, args.warmup)
+
+
+def run_job_subprocess(
+    args: argparse.Namespace, phase: str, preset: str, model: str | None
+) -> dict[str, Any]:
+    """One row, measured in a fresh Python process, so that its peak memory is its own (the
+    device's peak_bytes_in_use and the peak RSS only ever grow within a process)."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        out = os.path.join(tmp, "row.json")
+        argv = [*job_argv(args, phase, preset, model), "--same-process", "--out", out]
+        cmd = [sys.executable, "-m", "nmjax.cli", "bench", *argv]
+        done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+        if done.returncode != 0:
+            lines = done.stderr.strip().splitlines() or [f"exit status {done.returncode}"]
+            raise ValueError(f"row {phase}/{preset} failed: {lines[-1]}")
+        with open(out) as f:
+            return json.load(f)["rows"][0]
+
+
+def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[str, Any]:
+    """Runs every (phase, preset[, model]) row; returns {"environment": ..., "rows": [...]}.
+
+    With more than one row each runs in its own process unless `args.same_process`.
+    """
+    env = environment()
+    emit(" ".join(f"{k}={v}" for k, v in env.items()))
+    todo = jobs(args)
+    measure = run_job if args.same_process or len(todo) == 1 else run_job_subprocess
+    rows = []
+    for job in todo:
+        rows.append(measure(args, *job))
+        emit(format_table(rows[-1:]).splitlines()[-1])
     emit("")
     emit(format_table(rows))
     return {"environment": env, "args": vars(args), "rows": rows}
@@ -576,14 +627,17 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
 
 
 def forward_backward(fn: Callable[..., jax.Array], args: tuple[Any, ...]) -> Callable:
-    """jit of (value, gradient w.r.t. every argument) of sum(fn(*args) * r), r fixed random."""
+    """jit of ((sum(fn(*args) * r), fn(*args)), gradient of the sum w.r.t. every argument), with
+    r a fixed random cotangent."""
     out = jax.eval_shape(fn, *args)
     cotangent = jnp.asarray(np.random.default_rng(1).normal(size=out.shape), jnp.float32)
 
-    def loss(*a: Any) -> jax.Array:
-        return jnp.sum(fn(*a) * cotangent)
+    def loss(*a: Any) -> tuple[jax.Array, jax.Array]:
+        y = fn(*a)
+        return jnp.sum(y * cotangent), y
 
-    return jax.jit(jax.value_and_grad(loss, argnums=tuple(range(len(args)))))
+    grad_fn = jax.value_and_grad(loss, argnums=tuple(range(len(args))), has_aux=True)
+    return jax.jit(grad_fn)
 
 
 def time_compiled(fn: Callable, args: tuple[Any, ...], repeats: int) -> tuple[float, Any]:
@@ -600,10 +654,10 @@ def time_compiled(fn: Callable, args: tuple[Any, ...], repeats: int) -> tuple[fl
 
 def run_case(case: Case, repeats: int) -> dict[str, Any]:
     """Forward + backward time of both forms, their ratio, and their largest output difference."""
-    plain_s, (plain_value, plain_grads) = time_compiled(
+    plain_s, ((plain_value, _), plain_grads) = time_compiled(
         forward_backward(case.plain, case.args), case.args, repeats
     )
-    fast_s, (fast_value, fast_grads) = time_compiled(
+    fast_s, ((fast_value, _), fast_grads) = time_compiled(
         forward_backward(case.fast, case.args), case.args, repeats
     )
     diff = max(

@@ -18,7 +18,8 @@ waiting for data vs computing, compile time and peak memory.
 Compile time is `jit(...).lower(...).compile()`, timed on its own; the compiled executable is then
 the one that runs. Memory: the compiled step's `memory_analysis()` (argument, output, temporary
 bytes) and the device's `memory_stats()["peak_bytes_in_use"]` where it reports one (GPU), else the
-process's peak resident set size (`resource.getrusage`).
+process's peak resident set size (`resource.getrusage`). Both only grow within a process, so with
+several rows each row is measured in a fresh process (`--same-process` to opt out).
 
 `optimisations_main` (experiments/bench_optimisations.py) times each optimisation in the code
 against its plain formulation, forward + backward, in one process; the `plain_*` / `fast_*` pairs
@@ -366,9 +367,9 @@ def run_job(args: argparse.Namespace, phase: str, preset: str, model: str | None
 
 def run_job_subprocess(
     args: argparse.Namespace, phase: str, preset: str, model: str | None
-) -> dict[str, Any]:
-    """One row, measured in a fresh Python process, so that its peak memory is its own (the
-    device's peak_bytes_in_use and the peak RSS only ever grow within a process)."""
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(environment, row) of one row measured in a fresh Python process, so that its peak memory
+    is its own (the device's peak_bytes_in_use and the peak RSS only grow within a process)."""
     import subprocess
     import tempfile
 
@@ -381,21 +382,32 @@ def run_job_subprocess(
             lines = done.stderr.strip().splitlines() or [f"exit status {done.returncode}"]
             raise ValueError(f"row {phase}/{preset} failed: {lines[-1]}")
         with open(out) as f:
-            return json.load(f)["rows"][0]
+            result = json.load(f)
+    return result["environment"], result["rows"][0]
 
 
 def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[str, Any]:
     """Runs every (phase, preset[, model]) row; returns {"environment": ..., "rows": [...]}.
 
-    With more than one row each runs in its own process unless `args.same_process`.
+    With more than one row each runs in its own process unless `args.same_process`; this process
+    then never touches a device (on a GPU it would hold the memory the rows need), and the
+    environment is the first row's.
     """
-    env = environment()
-    emit(" ".join(f"{k}={v}" for k, v in env.items()))
     todo = jobs(args)
-    measure = run_job if args.same_process or len(todo) == 1 else run_job_subprocess
+    separate = not args.same_process and len(todo) > 1
+    env: dict[str, Any] = {} if separate else environment()
+    if env:
+        emit(" ".join(f"{k}={v}" for k, v in env.items()))
     rows = []
     for job in todo:
-        rows.append(measure(args, *job))
+        if separate:
+            row_env, row = run_job_subprocess(args, *job)
+            if not env:
+                env = row_env
+                emit(" ".join(f"{k}={v}" for k, v in env.items()))
+        else:
+            row = run_job(args, *job)
+        rows.append(row)
         emit(format_table(rows[-1:]).splitlines()[-1])
     emit("")
     emit(format_table(rows))

@@ -203,7 +203,7 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     out: dict[str, Any] = {
         "tracking": {**summarize(list(per_seq_cd.values())), "per_sequence": per_seq_cd}
     }
-    if sc.counts is not None and sc.frames > 0:
+    if sc.frames > 0:
         out["sc"] = {
             "score": sc.result(),
             "std_over_joints": float(np.std(sc.per_joint())),

@@ -26,21 +26,40 @@ TRACKING_SCALE = 1e4  # Table 2 reports the Chamfer distance x 1e4
 # --- SC-score (Eq. 21) -------------------------------------------------------------------------
 
 
+def skeleton_nodes(keypoints: Array, min_intensity: float = 0.2) -> Array:
+    """The keypoints that are nodes of the recovered skeleton: mean intensity >= `min_intensity`.
+
+    The intensity is averaged over all the given frames, so the node set is one fixed set, as
+    the pruned skeleton of DESIGN §7 (alpha < 0.2 removed); the brightest keypoint always stays.
+    A per-frame threshold would let keypoints whose alpha hovers near it drop in and out, and
+    count those flickers as inconsistency.
+
+    Args:
+        keypoints: (..., K, 4) detected keypoints.
+        min_intensity: alpha threshold.
+
+    Returns:
+        (K,) bool.
+    """
+    mean_alpha = jnp.mean(keypoints[..., 3].reshape(-1, keypoints.shape[-2]), axis=0)
+    return (mean_alpha >= min_intensity) | (mean_alpha == jnp.max(mean_alpha))
+
+
 def nearest_keypoint_counts(
     keypoints: Array, gt_joints: Array, min_intensity: float = 0.2
 ) -> tuple[Array, Array]:
-    """How often each keypoint is the nearest one to each ground-truth joint (Eq. 21's p_j(k)).
+    """How often each skeleton node is the nearest one to each ground-truth joint (Eq. 21's
+    p_j(k) times the number of frames).
 
-    Keypoints with alpha < `min_intensity` are ignored; frames where every keypoint is ignored do
-    not count.
+    Keypoints that are not skeleton nodes over these frames (`skeleton_nodes`) are ignored.
 
     Args:
         keypoints: (..., K, 4) detected keypoints, one set per frame.
         gt_joints: (..., J, 3) ground-truth joints of the same frames (same normalisation).
-        min_intensity: alpha threshold.
+        min_intensity: alpha threshold of `skeleton_nodes`.
 
     Returns:
-        counts (J, K) float32 and the number of frames that counted (scalar).
+        counts (J, K) float32 and the number of frames (scalar).
     """
     k, j = keypoints.shape[-2], gt_joints.shape[-2]
     kp = keypoints.reshape(-1, k, 4)
@@ -50,32 +69,28 @@ def nearest_keypoint_counts(
             f"keypoints {keypoints.shape} and gt_joints {gt_joints.shape} must describe the same "
             "frames (equal leading axes)"
         )
-    valid = kp[..., 3] >= min_intensity  # (F, K)
+    nodes = skeleton_nodes(kp, min_intensity)  # (K,)
     d = jnp.sum(jnp.square(gt[:, :, None, :] - kp[:, None, :, :3]), axis=-1)  # (F, J, K)
-    d = jnp.where(valid[:, None, :], d, jnp.inf)
-    nearest = jax.nn.one_hot(jnp.argmin(d, axis=-1), k)  # (F, J, K)
-    used = jnp.any(valid, axis=-1)  # (F,)
-    counts = jnp.sum(nearest * used[:, None, None], axis=0)
-    return counts, jnp.sum(used).astype(jnp.float32)
+    d = jnp.where(nodes[None, None, :], d, jnp.inf)
+    counts = jnp.sum(jax.nn.one_hot(jnp.argmin(d, axis=-1), k), axis=0)
+    return counts, jnp.float32(kp.shape[0])
 
 
 def sc_score_from_counts(counts: Array | np.ndarray, frames: float) -> float:
     """Eq. 21: SC = mean over joints j of max_k p_j(k), with p_j(k) = counts[j, k] / frames."""
     if frames <= 0:
-        raise ValueError(
-            "semantic consistency: no frame had a keypoint with alpha >= min_intensity; "
-            "lower min_intensity or check the detector's intensities"
-        )
+        raise ValueError("semantic consistency: no frames given")
     return float(np.mean(np.max(np.asarray(counts), axis=-1)) / frames)
 
 
 def semantic_consistency(keypoints: Array, gt_joints: Array, min_intensity: float = 0.2) -> float:
-    """Eq. 21, the SC-score of one batch of frames (see `SemanticConsistency` for many batches).
+    """Eq. 21, the SC-score of a set of frames (see `SemanticConsistency` for many batches).
 
     Args:
         keypoints: (F, K, 4) (any leading axes) detected keypoints.
         gt_joints: (F, J, 3) ground-truth joints in the same normalised frame.
-        min_intensity: keypoints with alpha below it are ignored (DESIGN §9: 0.2).
+        min_intensity: keypoints whose mean alpha is below it are not skeleton nodes (DESIGN §9:
+            0.2) and are ignored.
 
     Returns:
         SC in [1/K, 1]; 1 when every joint always has the same nearest keypoint.
@@ -88,37 +103,62 @@ _counts_jit = jax.jit(nearest_keypoint_counts, static_argnums=2)
 
 
 class SemanticConsistency:
-    """Accumulates Eq. 21 over many batches: `update(kp, gt)` per batch, then `result()`."""
+    """Eq. 21 over many batches: `update(kp, gt)` per batch, then `result()`.
+
+    The frames are kept (they are small) because the skeleton nodes are decided by the mean
+    intensity over all of them before any nearest keypoint is counted.
+    """
 
     def __init__(self, min_intensity: float = 0.2):
         self.min_intensity = min_intensity
-        self.counts: np.ndarray | None = None
-        self.frames = 0.0
+        self._keypoints: list[np.ndarray] = []
+        self._joints: list[np.ndarray] = []
+
+    @property
+    def frames(self) -> int:
+        """Frames added so far."""
+        return sum(kp.shape[0] for kp in self._keypoints)
 
     def update(self, keypoints: Array, gt_joints: Array) -> None:
         """Adds frames: keypoints (..., K, 4), gt_joints (..., J, 3) with equal leading axes."""
-        counts, frames = _counts_jit(
-            jnp.asarray(keypoints), jnp.asarray(gt_joints), self.min_intensity
-        )
-        counts = np.asarray(counts, dtype=np.float64)
-        if self.counts is not None and self.counts.shape != counts.shape:
+        kp = np.asarray(keypoints, np.float32)
+        gt = np.asarray(gt_joints, np.float32)
+        if kp.shape[:-2] != gt.shape[:-2]:
             raise ValueError(
-                f"SemanticConsistency: (J, K) changed from {self.counts.shape} to {counts.shape}"
+                f"keypoints {kp.shape} and gt_joints {gt.shape} must describe the same frames "
+                "(equal leading axes)"
             )
-        self.counts = counts if self.counts is None else self.counts + counts
-        self.frames += float(frames)
+        kp, gt = kp.reshape(-1, *kp.shape[-2:]), gt.reshape(-1, *gt.shape[-2:])
+        if self._keypoints and (kp.shape[1:], gt.shape[1:]) != (
+            self._keypoints[0].shape[1:],
+            self._joints[0].shape[1:],
+        ):
+            raise ValueError(
+                f"SemanticConsistency: (J, K) changed from ({self._joints[0].shape[1]}, "
+                f"{self._keypoints[0].shape[1]}) to ({gt.shape[1]}, {kp.shape[1]})"
+            )
+        self._keypoints.append(kp)
+        self._joints.append(gt)
+
+    def counts(self) -> tuple[np.ndarray, float]:
+        """(J, K) nearest-node counts over every frame added, and the number of frames."""
+        if not self._keypoints:
+            raise ValueError("SemanticConsistency: no frame added yet; call update() first")
+        counts, frames = _counts_jit(
+            jnp.asarray(np.concatenate(self._keypoints)),
+            jnp.asarray(np.concatenate(self._joints)),
+            self.min_intensity,
+        )
+        return np.asarray(counts, np.float64), float(frames)
 
     def per_joint(self) -> np.ndarray:
         """(J,) max_k p_j(k) of each ground-truth joint."""
-        if self.counts is None or self.frames <= 0:
-            raise ValueError("SemanticConsistency: no frame counted yet; call update() first")
-        return self.counts.max(axis=-1) / self.frames
+        counts, frames = self.counts()
+        return counts.max(axis=-1) / frames
 
     def result(self) -> float:
-        """Eq. 21 over every frame seen so far."""
-        if self.counts is None:
-            raise ValueError("SemanticConsistency: no frame counted yet; call update() first")
-        return sc_score_from_counts(self.counts, self.frames)
+        """Eq. 21 over every frame added so far."""
+        return sc_score_from_counts(*self.counts())
 
 
 # --- Chamfer distances -------------------------------------------------------------------------

@@ -242,7 +242,7 @@ def validate(
             sc.update(keypoints, batch["joints"])
         all_kp.append(np.asarray(keypoints))
     scalars = {f"val/{k}": v / len(batches) for k, v in sums.items()}
-    if sc.counts is not None and sc.frames > 0:
+    if sc.frames > 0:
         scalars["val/sc_score"] = sc.result()
     return scalars, np.stack(all_kp)
 

@@ -284,6 +284,8 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
+    from nmjax.train.skel import add_override_argument
+
     parser = argparse.ArgumentParser(
         prog="nmjax bench",
         description="Steps/s, frames/s, data-loading vs compute time, compile time and peak "
@@ -294,13 +296,9 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--data", default="synth-arm", help="dataset of the phase-1 pipeline")
     parser.add_argument("--steps", type=int, default=10, help="timed steps per row")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps after compiling")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="config override for both phases, or one phase with a prefix: "
+    add_override_argument(
+        parser,
+        "config override for both phases, or one phase with a prefix: "
         "skel:model.channels=16, dyn:batch_size=8",
     )
     parser.add_argument(
@@ -744,7 +742,7 @@ def format_optimisations(rows: list[dict[str, Any]]) -> str:
 def optimisations_main(argv: Sequence[str]) -> int:
     """experiments/bench_optimisations.py: every optimisation vs its plain form, one process."""
     from nmjax.data.datasets import load_sequences
-    from nmjax.train.skel import apply_overrides
+    from nmjax.train.skel import add_override_argument, apply_overrides
 
     parser = argparse.ArgumentParser(
         prog="bench_optimisations.py",
@@ -756,9 +754,7 @@ def optimisations_main(argv: Sequence[str]) -> int:
     parser.add_argument("--repeats", type=int, default=3, help="timed calls per form (median)")
     parser.add_argument("--prefetch-batches", type=int, default=10, help="batches for (e)")
     parser.add_argument("--only", nargs="+", default=None, help="case letters, e.g. a b e")
-    parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], help="phase-1 data overrides"
-    )
+    add_override_argument(parser, "phase-1 data overrides")
     parser.add_argument("--out", default=None, help="JSON output file")
     args = parser.parse_args(list(argv))
     env = environment()

@@ -84,6 +84,13 @@ def _parse_value(text: str, current: Any, key: str) -> Any:
         raise ValueError(f"--set {key}: cannot read {text!r} as {type(current).__name__}") from None
 
 
+def add_override_argument(parser: argparse.ArgumentParser, help: str) -> None:
+    """Adds the repeatable `--set FIELD=VALUE` option read by `apply_overrides`."""
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE", help=help
+    )
+
+
 def apply_overrides(cfg: Any, assignments: Sequence[str]) -> Any:
     """Returns `cfg` with dotted-path overrides like "model.channels=16" or "lr_decay=0.5,0.1"."""
     for item in assignments:
@@ -494,13 +501,8 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     parser.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
-    parser.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="FIELD=VALUE",
-        help="override any config field, e.g. --set model.channels=16 --set weights.vol=1.0",
+    add_override_argument(
+        parser, "override any config field, e.g. --set model.channels=16 --set weights.vol=1.0"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parallel.add_distributed_args(parser)

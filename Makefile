@@ -50,16 +50,19 @@ train-dyn:
 	$(NMJAX) train-dyn $(DYN_FLAGS) $(ARGS)
 
 # Paper tables on the synthetic bodies at CPU scale -> experiments/results/*.md and plots.
-# STEPS: phase-1 steps per run (default 2000); DYN_STEPS: phase-2 steps (default 3000).
+# STEPS: phase-1 steps per run (default 2000); DYN_STEPS: phase-2 steps (default 3000);
+# EXP_DATA: the bodies, e.g. EXP_DATA="synth-arm synth-hand" (default: each script's own list).
 DYN_STEPS ?= 3000
 EXP_STEPS = $(or $(STEPS),2000)
+EXP_DATA ?=
+EXP_FLAGS = $(if $(EXP_DATA),--data $(EXP_DATA))
 EXP_PY := JAX_PLATFORMS=cpu $(VENV)/bin/python
 
 experiments:
-	$(EXP_PY) experiments/table1_2_9_10_phase1.py --steps $(EXP_STEPS)
-	$(EXP_PY) experiments/ltraj_ablation.py --steps $(EXP_STEPS)
+	$(EXP_PY) experiments/table1_2_9_10_phase1.py --steps $(EXP_STEPS) $(EXP_FLAGS)
+	$(EXP_PY) experiments/ltraj_ablation.py --steps $(EXP_STEPS) $(EXP_FLAGS)
 	$(EXP_PY) experiments/table11_12_interpolation.py --skel-steps $(EXP_STEPS) \
-		--dyn-steps $(DYN_STEPS)
+		--dyn-steps $(DYN_STEPS) $(EXP_FLAGS)
 
 clean:
 	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

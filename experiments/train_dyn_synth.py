@@ -75,7 +75,10 @@ def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str)
         train = [r for r in records if "train/loss" in r]
         val = [r for r in records if "val/recon" in r]
         axes[0].plot([r["step"] for r in train], [r["train/recon"] for r in train], color=color)
-        axes[0].set_title("train: Eq. 3 reconstruction (best of S)")
+        if train and "train/last_pose" in train[0]:
+            last = [r["train/last_pose"] for r in train]
+            axes[0].plot([r["step"] for r in train], last, color="gray", ls="--", lw=0.8)
+        axes[0].set_title("train: Eq. 3 reconstruction, best of S (dashed: last pose)", fontsize=10)
         steps = [r["step"] for r in val]
         axes[1].plot(steps, [r["val/recon"] for r in val], color=color, label=f"{model}")
         best = [r["val/recon_best"] for r in val]

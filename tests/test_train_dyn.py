@@ -170,6 +170,9 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
         state, metrics = step(state, poses, starts, jax.random.key(2), jnp.int32(i))
         recon.append(float(metrics["recon"]))  # Eq. 3 before this step's update
     assert np.mean(recon[-5:]) < 0.5 * np.mean(recon[:5])
+    crop = poses[3 : 3 + cfg.frames]  # the logged baseline: x_t predicted by x_{t-1}
+    expected = np.mean(np.sum(np.square(crop[1:] - crop[:-1]), axis=(-2, -1)))
+    np.testing.assert_allclose(float(metrics["last_pose"]), expected, rtol=1e-5)
 
 
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
@@ -228,3 +231,7 @@ def test_command_line_options_map_onto_the_config():
     assert resume and cfg.run == "r" and cfg.skel_run == "s" and cfg.data == "synth-hand"
     with pytest.raises(SystemExit):
         dyn.parse_args(["--resume"])
+    cfg, _ = dyn.parse_args(["--set", "kl_weight=1e-5", "--set", "model.latent=8"])
+    assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8
+    with pytest.raises(SystemExit):  # an unknown field is named, not ignored
+        dyn.parse_args(["--set", "model.no_such_field=1"])

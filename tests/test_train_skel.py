@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from nmjax import config
 from nmjax.config import skel_preset
 from nmjax.train import common, skel
 
@@ -165,7 +166,7 @@ def test_unknown_data_lists_valid_names(capsys):
 
 
 def test_overrides_parse_types():
-    cfg = skel.apply_overrides(
+    cfg = config.apply_overrides(
         skel_preset("synth-arm", "tiny"),
         [
             "model.channels=16",

@@ -30,7 +30,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import io, losses, metrics
+from nmjax import config, io, losses, metrics
 from nmjax.config import DATASETS, PRESETS, SkelTrainConfig, dataset_spec, skel_preset
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
@@ -63,60 +63,6 @@ def check_config(cfg: SkelTrainConfig) -> None:
     for name in ("steps", "log_every", "val_every", "val_batches", "ckpt_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
-
-
-def _parse_value(text: str, current: Any, key: str) -> Any:
-    if isinstance(current, bool):
-        if text.lower() in ("1", "true", "yes"):
-            return True
-        if text.lower() in ("0", "false", "no"):
-            return False
-        raise ValueError(f"--set {key}: expected true/false, got {text!r}")
-    if isinstance(current, tuple):
-        parts = [p for p in text.strip("()[] ").split(",") if p.strip()]
-        kind = type(current[0]) if current else float
-        return tuple(kind(p) for p in parts)
-    if current is None:
-        return None if text.lower() == "none" else text
-    try:
-        return type(current)(text) if not isinstance(current, int) else int(text)
-    except ValueError:
-        raise ValueError(f"--set {key}: cannot read {text!r} as {type(current).__name__}") from None
-
-
-def add_override_argument(parser: argparse.ArgumentParser, help: str) -> None:
-    """Adds the repeatable `--set FIELD=VALUE` option read by `apply_overrides`."""
-    parser.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="FIELD=VALUE", help=help
-    )
-
-
-def apply_overrides(cfg: Any, assignments: Sequence[str]) -> Any:
-    """Returns `cfg` with dotted-path overrides like "model.channels=16" or "lr_decay=0.5,0.1"."""
-    for item in assignments:
-        if "=" not in item:
-            raise ValueError(f"--set expects FIELD=VALUE (e.g. model.channels=16), got {item!r}")
-        key, text = item.split("=", 1)
-        cfg = _replace_path(cfg, key.strip().split("."), text.strip(), key)
-    return cfg
-
-
-def _replace_path(obj: Any, path: list[str], text: str, key: str) -> Any:
-    names = {f.name for f in dataclasses.fields(obj)}
-    if path[0] not in names:
-        raise ValueError(
-            f"--set {key}: {type(obj).__name__} has no field {path[0]!r}; fields: {sorted(names)}"
-        )
-    current = getattr(obj, path[0])
-    if len(path) == 1:
-        if dataclasses.is_dataclass(current):
-            raise ValueError(f"--set {key}: {path[0]} is a group; set one of its fields")
-        value = _parse_value(text, current, key)
-    else:
-        if not dataclasses.is_dataclass(current):
-            raise ValueError(f"--set {key}: {path[0]} has no sub-fields")
-        value = _replace_path(current, path[1:], text, key)
-    return dataclasses.replace(obj, **{path[0]: value})
 
 
 # --- model, state and the compiled steps -------------------------------------------------------
@@ -501,7 +447,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     parser.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
-    add_override_argument(
+    config.add_override_argument(
         parser, "override any config field, e.g. --set model.channels=16 --set weights.vol=1.0"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -520,7 +466,7 @@ def config_from_args(args: argparse.Namespace) -> SkelTrainConfig:
         cfg = skel_preset(args.data, args.preset)
     if args.root is not None:
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
-    cfg = apply_overrides(cfg, args.overrides)
+    cfg = config.apply_overrides(cfg, args.overrides)
     if args.steps is not None:
         cfg = dataclasses.replace(cfg, steps=args.steps)
     if args.run is not None:

@@ -43,7 +43,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from nmjax import io
-from nmjax.config import PRESETS, dyn_preset, skel_preset
+from nmjax.config import (
+    PRESETS,
+    add_override_argument,
+    apply_overrides,
+    dataset_spec,
+    dyn_preset,
+    skel_preset,
+)
 
 PHASES = ("skel", "dyn")
 MEMORY_KEYS = ("argument_bytes", "output_bytes", "temp_bytes")
@@ -250,8 +257,6 @@ def _split_overrides(assignments: Sequence[str], phase: str) -> list[str]:
 
 def configs(args: argparse.Namespace, phase: str, preset: str) -> Any:
     """The preset's config of `phase` with the --set overrides, --compute-dtype and --dyn-model."""
-    from nmjax.config import apply_overrides
-
     if phase == "skel":
         cfg = skel_preset(args.data, preset)
         if args.compute_dtype is not None:
@@ -284,8 +289,6 @@ def format_table(rows: list[dict[str, Any]]) -> str:
 
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
-    from nmjax.config import add_override_argument
-
     parser = argparse.ArgumentParser(
         prog="nmjax bench",
         description="Steps/s, frames/s, data-loading vs compute time, compile time and peak "
@@ -353,8 +356,6 @@ def job_argv(args: argparse.Namespace, phase: str, preset: str, model: str | Non
 
 def run_job(args: argparse.Namespace, phase: str, preset: str, model: str | None) -> dict:
     """One row, measured in this process."""
-    from nmjax.config import dataset_spec
-
     cfg = configs(args, phase, preset)
     if phase == "skel":
         return bench_skel(cfg, preset, args.steps, args.warmup)
@@ -743,7 +744,6 @@ def format_optimisations(rows: list[dict[str, Any]]) -> str:
 
 def optimisations_main(argv: Sequence[str]) -> int:
     """experiments/bench_optimisations.py: every optimisation vs its plain form, one process."""
-    from nmjax.config import add_override_argument, apply_overrides
     from nmjax.data.datasets import load_sequences
 
     parser = argparse.ArgumentParser(

@@ -2,8 +2,9 @@
 
 A run is described by one `SkelTrainConfig` (phase 1) or `DynTrainConfig` (phase 2). Presets are
 built by `skel_preset(data, preset)` / `dyn_preset(data, preset)`; every field can be overridden
-from the command line (tyro). `preset="default"` is the paper's configuration (G=64, C=128);
-`preset="cpu"` shrinks grid and channels so that training runs on a laptop-class CPU.
+from the command line with `--set FIELD=VALUE` (`add_override_argument`, `apply_overrides`).
+`preset="default"` is the paper's configuration (G=64, C=128); `preset="cpu"` shrinks grid and
+channels so that training runs on a laptop-class CPU.
 """
 
 from __future__ import annotations

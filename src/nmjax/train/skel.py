@@ -30,8 +30,16 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import config, io, losses, metrics
-from nmjax.config import DATASETS, PRESETS, SkelTrainConfig, dataset_spec, skel_preset
+from nmjax import io, losses, metrics
+from nmjax.config import (
+    DATASETS,
+    PRESETS,
+    SkelTrainConfig,
+    add_override_argument,
+    apply_overrides,
+    dataset_spec,
+    skel_preset,
+)
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
 
@@ -447,7 +455,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     parser.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     parser.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
-    config.add_override_argument(
+    add_override_argument(
         parser, "override any config field, e.g. --set model.channels=16 --set weights.vol=1.0"
     )
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -466,7 +474,7 @@ def config_from_args(args: argparse.Namespace) -> SkelTrainConfig:
         cfg = skel_preset(args.data, args.preset)
     if args.root is not None:
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
-    cfg = config.apply_overrides(cfg, args.overrides)
+    cfg = apply_overrides(cfg, args.overrides)
     if args.steps is not None:
         cfg = dataclasses.replace(cfg, steps=args.steps)
     if args.run is not None:

@@ -87,9 +87,12 @@ def test_hourglass_levels():
     assert blocks.hourglass_levels(2, 0) == 0
 
 
-@pytest.fixture(scope="module")
-def tiny_outputs():
+@pytest.fixture(scope="module", params=[4, 2], ids=["stride4", "stride2"])
+def tiny_outputs(request):
     cfg = skel_preset("synth-arm", "tiny")
+    cfg = dataclasses.replace(
+        cfg, model=dataclasses.replace(cfg.model, heatmap_stride=request.param)
+    )
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
     b, t, g = cfg.data.batch_size, cfg.data.frames, cfg.model.grid
     voxels = (jax.random.uniform(jax.random.key(1), (b, t, g, g, g)) > 0.8).astype(jnp.float32)
@@ -100,7 +103,7 @@ def test_detector_output_shapes_and_ranges(tiny_outputs):
     cfg, _, voxels, out = tiny_outputs
     b, t, g = cfg.data.batch_size, cfg.data.frames, cfg.model.grid
     k, n = cfg.model.num_keypoints, cfg.model.num_affinity
-    h = g // 4
+    h = g // cfg.model.heatmap_stride
     assert out["voxels"].shape == (b, t, g, g, g)
     assert out["recon"].shape == (b, t, g, g, g)
     assert out["heatmaps"].shape == (b, t, h, h, h, k)
@@ -156,7 +159,9 @@ def test_decoder_input_conv_equals_conv_on_concatenated_channels(tiny_outputs):
         [maps, jnp.broadcast_to(context[:, None], (b, t, *context.shape[1:]))], -1
     )
     x = nnx.leaky_relu(dec.inp(full.reshape(b * t, *full.shape[2:])), blocks.LEAK)
-    x = dec.up2(blocks.upsample_trilinear(dec.up1(blocks.upsample_trilinear(x))))
+    if cfg.model.heatmap_stride == 4:
+        x = blocks.upsample_trilinear(x)
+    x = dec.up2(blocks.upsample_trilinear(dec.up1(x)))
     expected = dec.out(x)[..., 0].reshape(raw.shape)
     np.testing.assert_allclose(raw, expected, rtol=1e-4, atol=1e-5)
 
@@ -171,7 +176,12 @@ def test_fusion_starts_as_frame_heatmap_in_exponential_regime(tiny_outputs):
 
 @pytest.mark.parametrize(
     ("field", "value", "match"),
-    [("num_keypoints", 1, "num_keypoints"), ("grid", 18, "multiple of 4"), ("channels", 2, "C")],
+    [
+        ("num_keypoints", 1, "num_keypoints"),
+        ("grid", 18, "multiple of 4"),
+        ("channels", 2, "C"),
+        ("heatmap_stride", 8, "heatmap_stride"),
+    ],
 )
 def test_bad_detector_config(field, value, match):
     cfg = dataclasses.replace(skel_preset("synth-arm", "tiny").model, **{field: value})

@@ -447,7 +447,8 @@ def plain_decoder(decoder: Any, maps: jax.Array, context: jax.Array) -> jax.Arra
     w = decoder.inp.kernel[...][0, 0, 0]
     shared = jnp.broadcast_to(context[:, None], (b, t, *context.shape[1:]))
     x = nnx.leaky_relu(jnp.concatenate([maps, shared], -1) @ w + decoder.inp.bias[...], LEAK)
-    x = decoder.up1(upsample_trilinear(x.reshape(b * t, *x.shape[2:])))
+    x = x.reshape(b * t, *x.shape[2:])
+    x = decoder.up1(upsample_trilinear(x) if decoder.upsample_first else x)
     raw = decoder.out(decoder.up2(upsample_trilinear(x)))[..., 0]
     return raw.reshape(b, t, *raw.shape[1:])
 
@@ -569,7 +570,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     b, t = cfg.data.batch_size, cfg.data.frames
     if batch is not None:
         b, t = 1, batch
-    bt, big, g, c, k = b * t, m.grid, m.grid // 4, m.channels, m.num_keypoints
+    bt, big, g, c, k = b * t, m.grid, m.grid // m.heatmap_stride, m.channels, m.num_keypoints
     c4, c2 = max(1, c // 4), max(1, c // 2)
     rng = np.random.default_rng(0)
 
@@ -580,7 +581,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     keypoints = jnp.concatenate(
         [normal(b, t, k, 3, scale=0.4), jnp.asarray(rng.random((b, t, k, 1)), jnp.float32)], -1
     )
-    decoder = VoxelDecoder(2 * k + c + 3, c, rngs=nnx.Rngs(0))
+    decoder = VoxelDecoder(2 * k + c + 3, c, m.heatmap_stride, rngs=nnx.Rngs(0))
     graphdef, params = nnx.split(decoder)
     maps, context = normal(b, t, g, g, g, k), normal(b, g, g, g, c + k + 3)
     on_cpu = jax.default_backend() == "cpu"

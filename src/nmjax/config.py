@@ -133,7 +133,11 @@ class LossWeights:
 class DetectorConfig:
     """Keypoint detector of paper Fig. 8-9 (DESIGN section 6)."""
 
-    grid: int = 64  # G; heatmaps live on g = G / 4
+    grid: int = 64  # G; heatmaps live on g = G / heatmap_stride
+    # 4: the paper (16^3 heatmaps at G=64). 2: one pooling level less before the hourglass and
+    # one upsampling less in the decoder (16^3 heatmaps at G=32: slower, and on synth-arm at the
+    # cpu preset no better; experiments/results/NOTES.md).
+    heatmap_stride: int = 4
     num_keypoints: int = 24  # K
     channels: int = 128  # C
     hourglass_channels: tuple[int, int, int] = (32, 48, 72)
@@ -222,7 +226,8 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
     data_cfg = DataConfig(name=data, sample_rate=spec.sample_rate)
     cfg = SkelTrainConfig(data=data_cfg, model=model, weights=weights)
     if preset == "cpu":
-        # Sized for 2 CPU cores (about 1 step/s): 12 frames of 32^3 per step instead of 30 of 64^3.
+        # Sized for 2 CPU cores (about 0.8 steps/s): 12 frames of 32^3 per step instead of 30 of
+        # 64^3.
         cfg = dataclasses.replace(
             cfg,
             data=dataclasses.replace(data_cfg, grid=32, frames=6, batch_size=2),

@@ -38,6 +38,8 @@ _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
 SLICED_CONV_MIN_SIZE = 1 << 18
 _NHWC = ("NHWC", "HWIO", "NHWC")
 COMPUTE_DTYPES = ("float32", "bfloat16")
+# G / g: f_feat pools twice (4) or once (2) before the hourglass; f_dec upsamples as often.
+HEATMAP_STRIDES = (2, 4)
 
 
 def check_compute_dtype(name: str) -> None:
@@ -270,12 +272,13 @@ def upsample_trilinear(x: jax.Array) -> jax.Array:
 
 
 class FeatureNet(nnx.Module):
-    """f_feat of paper Fig. 9: (B, G, G, G) occupancy -> (B, G/4, G/4, G/4, C) features.
+    """f_feat of paper Fig. 9: (B, G, G, G) occupancy -> (B, g, g, g, C) features, g = G / stride.
 
     CoordConv conv5 on [occupancy, x, y, z] (-> C/4) + GN + LeakyReLU, pool, residual
-    (C/4 -> C/2), pool, hourglass at G/4, residual (C/2 -> C). The stem is linear in its input
-    channels, so the three coordinate channels (identical for every sample) are convolved once
-    and broadcast instead of being concatenated to every sample: the same function, 4x cheaper.
+    (C/4 -> C/2), pool (stride 4 only), hourglass at g, residual (C/2 -> C). The stem is linear
+    in its input channels, so the three coordinate channels (identical for every sample) are
+    convolved once and broadcast instead of being concatenated to every sample: the same
+    function, 4x cheaper.
     """
 
     def __init__(
@@ -283,15 +286,18 @@ class FeatureNet(nnx.Module):
         channels: int,
         hourglass_channels: tuple[int, ...],
         grid: int,
+        stride: int = 4,
         *,
         rngs: nnx.Rngs,
     ):
+        if stride not in HEATMAP_STRIDES:
+            raise ValueError(f"FeatureNet: stride must be one of {HEATMAP_STRIDES}, got {stride}")
         c4, c2 = max(1, channels // 4), max(1, channels // 2)
         self.stem = ConvNormAct(1 + 3, c4, kernel=5, rngs=rngs)
         self.pool1 = Pool(c4, c4, rngs=rngs)
         self.res1 = ResBlock(c4, c2, rngs=rngs)
-        self.pool2 = Pool(c2, c2, rngs=rngs)
-        self.hourglass = Hourglass(c2, hourglass_channels, grid // 4, rngs=rngs)
+        self.pool2 = Pool(c2, c2, rngs=rngs) if stride == 4 else None
+        self.hourglass = Hourglass(c2, hourglass_channels, grid // stride, rngs=rngs)
         self.res2 = ResBlock(c2, channels, rngs=rngs)
 
     def __call__(self, voxels: jax.Array) -> jax.Array:
@@ -304,4 +310,6 @@ class FeatureNet(nnx.Module):
         x = (conv3d_same(v, wv) + conv3d_same(c, wc)).astype(jnp.float32)
         x = nnx.leaky_relu(self.stem.norm(x + self.stem.conv.bias[...]), LEAK)
         x = self.res1(self.pool1(x))
-        return self.res2(self.hourglass(self.pool2(x)))
+        if self.pool2 is not None:
+            x = self.pool2(x)
+        return self.res2(self.hourglass(x))

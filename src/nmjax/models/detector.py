@@ -17,6 +17,7 @@ from nmjax import keypoints as kp_lib
 from nmjax import losses
 from nmjax.config import DetectorConfig
 from nmjax.models.blocks import (
+    HEATMAP_STRIDES,
     LEAK,
     Conv3D,
     ConvNormAct,
@@ -35,10 +36,14 @@ def check_detector_config(cfg: DetectorConfig) -> None:
             f"model.num_keypoints (K) must be >= 2 for an affinity between keypoints, got "
             f"{cfg.num_keypoints}"
         )
+    if cfg.heatmap_stride not in HEATMAP_STRIDES:
+        raise ValueError(
+            f"model.heatmap_stride must be one of {HEATMAP_STRIDES}, got {cfg.heatmap_stride}"
+        )
     if cfg.grid < 4 or cfg.grid % 4:
         raise ValueError(
-            f"model.grid (G) must be a positive multiple of 4 (heatmaps live on G/4), got "
-            f"{cfg.grid}"
+            f"model.grid (G) must be a positive multiple of 4 (heatmaps live on G/"
+            f"{cfg.heatmap_stride}, the hourglass below them), got {cfg.grid}"
         )
     if cfg.channels < 4:
         raise ValueError(f"model.channels (C) must be >= 4 (C/4 stem channels), got {cfg.channels}")
@@ -50,10 +55,15 @@ def check_detector_config(cfg: DetectorConfig) -> None:
 
 
 class VoxelDecoder(nnx.Module):
-    """f_dec of Fig. 9: [g_t, c_1, g_1, coords] at g^3 -> raw occupancy logits at G^3."""
+    """f_dec of Fig. 9: [g_t, c_1, g_1, coords] at g^3 -> raw occupancy logits at G^3.
 
-    def __init__(self, in_ch: int, channels: int, *, rngs: nnx.Rngs):
+    Two conv stages (C -> C/2 -> C/4); each is preceded by a trilinear 2x upsampling when
+    G / g = 4, only the second one when G / g = 2.
+    """
+
+    def __init__(self, in_ch: int, channels: int, stride: int = 4, *, rngs: nnx.Rngs):
         c2, c4 = max(1, channels // 2), max(1, channels // 4)
+        self.upsample_first = stride == 4
         self.inp = Conv3D(in_ch, channels, 1, rngs=rngs)
         self.up1 = nnx.Sequential(
             ConvNormAct(channels, c2, 3, rngs=rngs), ConvNormAct(c2, c2, 3, rngs=rngs)
@@ -80,7 +90,8 @@ class VoxelDecoder(nnx.Module):
         maps, context, w = in_compute_dtype(self.inp.compute_dtype, maps, context, w)
         shared = (context @ w[k:]).astype(jnp.float32) + self.inp.bias[...]  # (B, g, g, g, C)
         x = nnx.leaky_relu((maps @ w[:k]).astype(jnp.float32) + shared[:, None], LEAK)
-        x = self.up1(upsample_trilinear(x.reshape(b * t, *x.shape[2:])))
+        x = x.reshape(b * t, *x.shape[2:])
+        x = self.up1(upsample_trilinear(x) if self.upsample_first else x)
         x = self.up2(upsample_trilinear(x))
         raw = self.out(x)[..., 0]
         return raw.reshape(b, t, *raw.shape[1:])
@@ -103,8 +114,9 @@ class KeypointDetector(nnx.Module):
         self.cfg = cfg
         k, c = cfg.num_keypoints, cfg.channels
         hg = tuple(cfg.hourglass_channels)
-        self.features = FeatureNet(c, hg, cfg.grid, rngs=rngs)
-        self.st_features = FeatureNet(2 * c, hg, cfg.grid, rngs=rngs)
+        stride = cfg.heatmap_stride
+        self.features = FeatureNet(c, hg, cfg.grid, stride, rngs=rngs)
+        self.st_features = FeatureNet(2 * c, hg, cfg.grid, stride, rngs=rngs)
         self.heat = Conv3D(c, k, 1, rngs=rngs)
         self.st_heat = Conv3D(2 * c, k, 1, rngs=rngs)
         # A 1x1x1 conv over the 2 stacked heatmaps, initialised as `cfg.fuse_init` says.
@@ -116,7 +128,7 @@ class KeypointDetector(nnx.Module):
             bias_init=nnx.initializers.constant(bias),
             rngs=rngs,
         )
-        self.decoder = VoxelDecoder(2 * k + c + 3, c, rngs=rngs)
+        self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, rngs=rngs)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
         set_compute_dtype(self, cfg.compute_dtype)
 

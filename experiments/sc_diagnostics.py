@@ -23,23 +23,20 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import metrics
-from nmjax.data.datasets import load_sequences, read_meta
-from nmjax.evaluate import Detector, test_crops
+from nmjax.data.datasets import read_meta
+from nmjax.evaluate import Detector, phase1_outputs
 
 NOISE_STDS = (0.0, 0.02, 0.04, 0.06, 0.08)
 
 
 def test_keypoints(detector: Detector, max_crops: int) -> tuple[np.ndarray, np.ndarray]:
     """Detected keypoints (F, K, 4) and ground-truth joints (F, J, 3) of every test frame."""
-    cfg = detector.cfg
     keypoints, joints = [], []
-    for seq in load_sequences(cfg.data.name, "test", cfg.data.root):
-        voxels, gt = test_crops(
-            seq, cfg.data.frames, cfg.data.sample_rate, cfg.data.grid, max_crops
-        )
+    for name, _, gt, kp, _ in phase1_outputs(detector, max_crops):
         if gt is None:
-            raise SystemExit(f"{cfg.data.name}: sequence {seq.name} has no ground-truth joints")
-        kp, _ = detector.run_batches(voxels)
+            raise SystemExit(
+                f"{detector.cfg.data.name}: sequence {name} has no ground-truth joints"
+            )
         keypoints.append(kp.reshape(-1, *kp.shape[-2:]))
         joints.append(gt.reshape(-1, *gt.shape[-2:]))
     return np.concatenate(keypoints), np.concatenate(joints)

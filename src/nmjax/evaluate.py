@@ -177,6 +177,24 @@ def test_crops(seq, frames: int, sample_rate: int, grid: int, max_crops: int):
     return np.stack(voxels), (np.stack(joints) if has_joints else None)
 
 
+def phase1_outputs(detector: Detector, max_crops: int = 8, split: str = "test"):
+    """The detector on the crops of `test_crops`, one sequence of `split` at a time.
+
+    Yields:
+      (sequence name, voxels (C, T, G, G, G), joints (C, T, J, 3) or None, keypoints
+      (C, T, K, 4), reconstructions (C, T, G, G, G)).
+    """
+    from nmjax.data.datasets import load_sequences
+
+    cfg = detector.cfg
+    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
+        voxels, joints = test_crops(
+            seq, cfg.data.frames, cfg.data.sample_rate, cfg.data.grid, max_crops
+        )
+        keypoints, recon = detector.run_batches(voxels)
+        yield seq.name, voxels, joints, keypoints, recon
+
+
 def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test") -> dict:
     """SC-score (Table 1) and 4D-tracking Chamfer x1e4 (Table 2) on `split`.
 
@@ -184,22 +202,15 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
       {"sc": {"score", "std_over_joints", "per_sequence"} (absent without ground-truth joints),
        "tracking": {"mean", "ci95", "n", "per_sequence"}}.
     """
-    from nmjax.data.datasets import load_sequences
-
-    cfg = detector.cfg
     sc = metrics.SemanticConsistency()
     per_seq_sc, per_seq_cd = {}, {}
-    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
-        voxels, joints = test_crops(
-            seq, cfg.data.frames, cfg.data.sample_rate, cfg.data.grid, max_crops
-        )
-        keypoints, recon = detector.run_batches(voxels)
-        per_seq_cd[seq.name] = float(
+    for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
+        per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
         )
         if joints is not None:
             sc.update(keypoints, joints)
-            per_seq_sc[seq.name] = metrics.semantic_consistency(keypoints, joints)
+            per_seq_sc[name] = metrics.semantic_consistency(keypoints, joints)
     out: dict[str, Any] = {
         "tracking": {**summarize(list(per_seq_cd.values())), "per_sequence": per_seq_cd}
     }

@@ -42,6 +42,12 @@ COMPUTE_DTYPES = ("float32", "bfloat16")
 HEATMAP_STRIDES = (2, 4)
 
 
+def check_heatmap_stride(stride: int) -> None:
+    """Raises ValueError unless `stride` is one of HEATMAP_STRIDES (field model.heatmap_stride)."""
+    if stride not in HEATMAP_STRIDES:
+        raise ValueError(f"model.heatmap_stride must be one of {HEATMAP_STRIDES}, got {stride}")
+
+
 def check_compute_dtype(name: str) -> None:
     """Raises ValueError unless `name` is one of COMPUTE_DTYPES (field model.compute_dtype)."""
     if name not in COMPUTE_DTYPES:
@@ -290,8 +296,7 @@ class FeatureNet(nnx.Module):
         *,
         rngs: nnx.Rngs,
     ):
-        if stride not in HEATMAP_STRIDES:
-            raise ValueError(f"FeatureNet: stride must be one of {HEATMAP_STRIDES}, got {stride}")
+        check_heatmap_stride(stride)
         c4, c2 = max(1, channels // 4), max(1, channels // 2)
         self.stem = ConvNormAct(1 + 3, c4, kernel=5, rngs=rngs)
         self.pool1 = Pool(c4, c4, rngs=rngs)

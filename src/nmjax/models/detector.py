@@ -17,12 +17,12 @@ from nmjax import keypoints as kp_lib
 from nmjax import losses
 from nmjax.config import DetectorConfig
 from nmjax.models.blocks import (
-    HEATMAP_STRIDES,
     LEAK,
     Conv3D,
     ConvNormAct,
     FeatureNet,
     check_compute_dtype,
+    check_heatmap_stride,
     in_compute_dtype,
     set_compute_dtype,
     upsample_trilinear,
@@ -36,10 +36,7 @@ def check_detector_config(cfg: DetectorConfig) -> None:
             f"model.num_keypoints (K) must be >= 2 for an affinity between keypoints, got "
             f"{cfg.num_keypoints}"
         )
-    if cfg.heatmap_stride not in HEATMAP_STRIDES:
-        raise ValueError(
-            f"model.heatmap_stride must be one of {HEATMAP_STRIDES}, got {cfg.heatmap_stride}"
-        )
+    check_heatmap_stride(cfg.heatmap_stride)
     if cfg.grid < 4 or cfg.grid % 4:
         raise ValueError(
             f"model.grid (G) must be a positive multiple of 4 (heatmaps live on G/"
@@ -62,6 +59,7 @@ class VoxelDecoder(nnx.Module):
     """
 
     def __init__(self, in_ch: int, channels: int, stride: int = 4, *, rngs: nnx.Rngs):
+        check_heatmap_stride(stride)
         c2, c4 = max(1, channels // 2), max(1, channels // 4)
         self.upsample_first = stride == 4
         self.inp = Conv3D(in_ch, channels, 1, rngs=rngs)

@@ -125,13 +125,16 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
     assert cli.main([*argv, "--max-segments", "1", "--max-crops", "1", "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())
     assert results["vrnn_run"] == str(runs["vrnn"])  # found beside the nm run
-    assert 0.0 < results["phase1"]["sc"]["score"] <= 1.0
-    assert np.isfinite(results["phase1"]["tracking"]["mean"])
+    p1 = results["phase1"]
+    assert 0.0 < p1["sc"]["score"] <= 1.0 and 0.0 < p1["sc_fixed_nodes"]["score"] <= 1.0
+    assert np.isfinite(p1["tracking"]["mean"])
+    bones = p1["bone_length_variation"]
+    assert np.isfinite(bones["mean"]) and bones["mean"] >= 0 and bones["kept_nodes"] >= 1
     assert set(results["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
     for by_rate in results["interpolation"].values():
         assert all(np.isfinite(by_rate[r]["mean"]) and by_rate[r]["n"] == 1 for r in ("3", "5"))
     tables = (out / "tables.md").read_text()
-    for row in ("| Ours |", "| VRNN |", "| Lerp |", "| Slerp |", "SR = 5"):
+    for row in ("| Ours |", "| VRNN |", "| Lerp |", "| Slerp |", "SR = 5", "fixed node set"):
         assert row in tables
     assert (out / "mcd.png").stat().st_size > 0
 

@@ -39,18 +39,46 @@ def test_semantic_consistency_perfect_and_accumulated():
     np.testing.assert_allclose(acc.per_joint(), [0.5])
 
 
-def test_semantic_consistency_ignores_faint_keypoints_by_mean_intensity():
+def test_semantic_consistency_published_definition_drops_faint_keypoints_per_frame():
+    # One joint at the origin, two keypoints over 3 frames. Keypoint 0 sits on the joint but its
+    # alpha is 0.1 in frame 1 (below 0.2): there it is no candidate, keypoint 1 (at x=0.9) is
+    # the nearest. Counts: joint 0 -> keypoint 0 in frames 0 and 2, keypoint 1 in frame 1, so
+    # p(0) = 2/3, p(1) = 1/3 and SC = max = 2/3.
+    gt = np.zeros((3, 1, 3), np.float32)
+    kp = np.array([[[0.0, 0, 0, 1.0], [0.9, 0, 0, 1.0]]] * 3, np.float32)
+    kp[1, 0, 3] = 0.1
+    counts, frames = metrics.nearest_keypoint_counts(jnp.asarray(kp), jnp.asarray(gt))
+    np.testing.assert_allclose(counts, [[2, 1]])
+    assert float(frames) == 3
+    assert metrics.semantic_consistency(kp, gt) == pytest.approx(2 / 3)
+    # The fixed node set (mean alpha 0.7 >= 0.2) keeps keypoint 0 a candidate in every frame.
+    assert metrics.semantic_consistency(kp, gt, nodes="fixed") == pytest.approx(1.0)
+    acc = metrics.SemanticConsistency()
+    acc.update(kp[:1], gt[:1])
+    acc.update(kp[1:], gt[1:])
+    assert acc.scores() == pytest.approx({"sc": 2 / 3, "sc_fixed_nodes": 1.0})
+    np.testing.assert_allclose(acc.per_joint(), [2 / 3])
+    # A frame where no keypoint reaches 0.2 counts as a frame, for no keypoint: p(0) = 2/4.
+    none = np.concatenate([kp, kp[:1] * np.array([1, 1, 1, 0.1], np.float32)])
+    gt4 = np.zeros((4, 1, 3), np.float32)
+    np.testing.assert_allclose(metrics.nearest_keypoint_counts(none, gt4)[0], [[2, 1]])
+    assert metrics.semantic_consistency(none, gt4) == pytest.approx(0.5)
+    with pytest.raises(ValueError, match="SC nodes"):
+        metrics.semantic_consistency(kp, gt, nodes="mean")
+
+
+def test_semantic_consistency_fixed_nodes_by_mean_intensity():
     gt = np.zeros((3, 1, 3), np.float32)
     kp = np.array([[[0.0, 0, 0, 0.1], [0.9, 0, 0, 1.0]]] * 3, np.float32)
-    counts, frames = metrics.nearest_keypoint_counts(jnp.asarray(kp), jnp.asarray(gt), 0.2)
+    counts, _ = metrics.nearest_keypoint_counts(jnp.asarray(kp), jnp.asarray(gt), 0.2, "fixed")
     np.testing.assert_allclose(counts, [[0, 3]])  # the closer keypoint is too faint
-    assert float(frames) == 3
-    # A node whose alpha flickers around the threshold (mean 0.3) stays a node in every frame:
-    # the skeleton's node set is fixed, so the joint keeps the same nearest keypoint.
+    # A node whose alpha flickers around the threshold (mean 0.3) stays a node in every frame
+    # of the fixed set, so the joint keeps the same nearest keypoint; per frame it does not.
     flicker = kp.copy()
     flicker[:, 0, 3] = [0.15, 0.6, 0.15]
     np.testing.assert_array_equal(metrics.skeleton_nodes(jnp.asarray(flicker)), [True, True])
-    assert metrics.semantic_consistency(flicker, gt) == pytest.approx(1.0)
+    assert metrics.semantic_consistency(flicker, gt, nodes="fixed") == pytest.approx(1.0)
+    assert metrics.semantic_consistency(flicker, gt) == pytest.approx(2 / 3)
     # With every keypoint faint, the brightest one is still a node.
     faint = kp * np.array([1, 1, 1, 0.1], np.float32)
     np.testing.assert_array_equal(metrics.skeleton_nodes(jnp.asarray(faint)), [False, True])
@@ -60,6 +88,46 @@ def test_semantic_consistency_ignores_faint_keypoints_by_mean_intensity():
     acc.update(kp[:, :1], gt)
     with pytest.raises(ValueError, match="changed"):
         acc.update(kp, gt)
+
+
+def test_bone_length_variation_hand_cases():
+    # A 3-keypoint chain 0 <- 1 <- 2 over 2 frames. Bone (1, 0) keeps length 1; bone (2, 1) has
+    # lengths 1 and 3: mean 2, std 1, ratio 1/2. Mean over the two bones: 0.25.
+    kp = np.zeros((2, 3, 4), np.float32)
+    kp[..., 3] = 1.0
+    kp[:, 1, 0] = 1.0
+    kp[0, 2, 0], kp[1, 2, 0] = 2.0, 4.0
+    parents = np.array([0, 0, 1])
+    np.testing.assert_allclose(
+        metrics.bone_lengths(jnp.asarray(kp), parents), [[0, 1, 1], [0, 1, 3]]
+    )
+    assert float(metrics.bone_length_variation(kp, parents)) == pytest.approx(0.25)
+    # Averaged over sequences too: with a rigid second sequence, 0.125.
+    rigid = kp.copy()
+    rigid[1, 2, 0] = 2.0
+    both = np.stack([kp, rigid])
+    assert float(metrics.bone_length_variation(both, parents)) == pytest.approx(0.125)
+    # A keypoint whose mean alpha is below 0.2 is not a node: its bone does not count.
+    faint = kp.copy()
+    faint[:, 2, 3] = 0.1
+    assert float(metrics.bone_length_variation(faint, parents)) == pytest.approx(0.0)
+    # Only the root kept: no bone, nan.
+    faint[:, 1, 3] = 0.1
+    assert np.isnan(float(metrics.bone_length_variation(faint, parents)))
+    # Rigid motion of the whole body (rotation + translation per frame) scores 0.
+    rng = np.random.default_rng(0)
+    rest = rng.normal(size=(5, 3))
+    frames = []
+    for _ in range(6):
+        q, _r = np.linalg.qr(rng.normal(size=(3, 3)))
+        frames.append(rest @ q.T + rng.normal(size=3))
+    moving = np.concatenate([np.stack(frames), np.ones((6, 5, 1))], -1).astype(np.float32)
+    jitted = jax.jit(metrics.bone_length_variation)
+    assert float(jitted(moving, np.array([0, 0, 1, 1, 3]))) == pytest.approx(0.0, abs=1e-5)
+    with pytest.raises(ValueError, match="T >= 2"):
+        metrics.bone_length_variation(kp[:1], parents)
+    with pytest.raises(ValueError, match="parents"):
+        metrics.bone_length_variation(kp, np.array([0, 0]))
 
 
 @SETTINGS

@@ -105,6 +105,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path):
     skeleton = json.loads((run / "skeleton.json").read_text())
     assert len(skeleton["parents"]) == k
     assert "val/sc_score" in straight and 0.0 < straight["val/sc_score"] <= 1.0
+    assert 0.0 < straight["val/sc_fixed_nodes"] <= 1.0
     assert list((run / "figures").glob("keypoints_*.png"))
     assert list((run / "tb").iterdir())
     saved = json.loads((run / "config.json").read_text())

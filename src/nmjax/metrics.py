@@ -1,5 +1,5 @@
-"""Evaluation metrics: SC-score (Eq. 21), Chamfer distances for 4D tracking (Table 2) and M-CD
-(Eq. 22); DESIGN §9.
+"""Evaluation metrics: SC-score (Eq. 21), bone-length variation, Chamfer distances for 4D
+tracking (Table 2) and M-CD (Eq. 22); DESIGN §9.
 
 The numerical kernels (`nearest_keypoint_counts`, `chamfer_distance`) are pure and jit-able; the
 front-ends (`SemanticConsistency`, `tracking_chamfer`, `motion_chamfer`) turn voxel grids into
@@ -25,14 +25,19 @@ TRACKING_SCALE = 1e4  # Table 2 reports the Chamfer distance x 1e4
 
 # --- SC-score (Eq. 21) -------------------------------------------------------------------------
 
+# How the candidates for "nearest keypoint" are chosen (DESIGN §9):
+# "per_frame": the published SC-score: in every frame, the keypoints whose alpha in that frame is
+#   >= the threshold. The default; what `nmjax evaluate` reports as "sc".
+# "fixed": one node set over all the frames, the keypoints whose mean alpha is >= the threshold
+#   (the pruned skeleton's nodes); reported beside it as "sc_fixed_nodes".
+SC_NODES = ("per_frame", "fixed")
+
 
 def skeleton_nodes(keypoints: Array, min_intensity: float = 0.2) -> Array:
-    """The keypoints that are nodes of the recovered skeleton: mean intensity >= `min_intensity`.
+    """The keypoints that are nodes of the pruned skeleton: mean intensity >= `min_intensity`.
 
     The intensity is averaged over all the given frames, so the node set is one fixed set, as
     the pruned skeleton of DESIGN §7 (alpha < 0.2 removed); the brightest keypoint always stays.
-    A per-frame threshold would let keypoints whose alpha hovers near it drop in and out, and
-    count those flickers as inconsistency.
 
     Args:
         keypoints: (..., K, 4) detected keypoints.
@@ -45,22 +50,32 @@ def skeleton_nodes(keypoints: Array, min_intensity: float = 0.2) -> Array:
     return (mean_alpha >= min_intensity) | (mean_alpha == jnp.max(mean_alpha))
 
 
+def _check_nodes(nodes: str) -> None:
+    if nodes not in SC_NODES:
+        raise ValueError(f"SC nodes must be one of {SC_NODES}, got {nodes!r}")
+
+
 def nearest_keypoint_counts(
-    keypoints: Array, gt_joints: Array, min_intensity: float = 0.2
+    keypoints: Array, gt_joints: Array, min_intensity: float = 0.2, nodes: str = "per_frame"
 ) -> tuple[Array, Array]:
-    """How often each skeleton node is the nearest one to each ground-truth joint (Eq. 21's
+    """How often each keypoint is the nearest candidate to each ground-truth joint (Eq. 21's
     p_j(k) times the number of frames).
 
-    Keypoints that are not skeleton nodes over these frames (`skeleton_nodes`) are ignored.
+    With `nodes="per_frame"` (the published SC-score, the default) a keypoint is a candidate in a
+    frame when its alpha in that frame is >= `min_intensity`; a frame without any candidate
+    counts for no keypoint (it still counts as a frame). With `nodes="fixed"` the candidates are
+    the same in every frame, `skeleton_nodes` over all the given frames.
 
     Args:
         keypoints: (..., K, 4) detected keypoints, one set per frame.
         gt_joints: (..., J, 3) ground-truth joints of the same frames (same normalisation).
-        min_intensity: alpha threshold of `skeleton_nodes`.
+        min_intensity: the alpha threshold (DESIGN §9: 0.2).
+        nodes: "per_frame" or "fixed" (`SC_NODES`).
 
     Returns:
         counts (J, K) float32 and the number of frames (scalar).
     """
+    _check_nodes(nodes)
     k, j = keypoints.shape[-2], gt_joints.shape[-2]
     kp = keypoints.reshape(-1, k, 4)
     gt = gt_joints.reshape(-1, j, 3)
@@ -69,11 +84,15 @@ def nearest_keypoint_counts(
             f"keypoints {keypoints.shape} and gt_joints {gt_joints.shape} must describe the same "
             "frames (equal leading axes)"
         )
-    nodes = skeleton_nodes(kp, min_intensity)  # (K,)
+    if nodes == "fixed":
+        candidate = jnp.broadcast_to(skeleton_nodes(kp, min_intensity), kp.shape[:2])  # (F, K)
+    else:
+        candidate = kp[..., 3] >= min_intensity  # (F, K)
     d = jnp.sum(jnp.square(gt[:, :, None, :] - kp[:, None, :, :3]), axis=-1)  # (F, J, K)
-    d = jnp.where(nodes[None, None, :], d, jnp.inf)
-    counts = jnp.sum(jax.nn.one_hot(jnp.argmin(d, axis=-1), k), axis=0)
-    return counts, jnp.float32(kp.shape[0])
+    d = jnp.where(candidate[:, None, :], d, jnp.inf)
+    hits = jax.nn.one_hot(jnp.argmin(d, axis=-1), k)  # (F, J, K)
+    hits = hits * jnp.any(candidate, axis=-1)[:, None, None]
+    return jnp.sum(hits, axis=0), jnp.float32(kp.shape[0])
 
 
 def sc_score_from_counts(counts: Array | np.ndarray, frames: float) -> float:
@@ -83,29 +102,38 @@ def sc_score_from_counts(counts: Array | np.ndarray, frames: float) -> float:
     return float(np.mean(np.max(np.asarray(counts), axis=-1)) / frames)
 
 
-def semantic_consistency(keypoints: Array, gt_joints: Array, min_intensity: float = 0.2) -> float:
+def semantic_consistency(
+    keypoints: Array, gt_joints: Array, min_intensity: float = 0.2, nodes: str = "per_frame"
+) -> float:
     """Eq. 21, the SC-score of a set of frames (see `SemanticConsistency` for many batches).
+
+    The default is the published definition (per-frame candidates, counts accumulated over all
+    the frames, p_j(k) = count / frames); `nodes="fixed"` counts the fixed node set of
+    `skeleton_nodes` instead (see `nearest_keypoint_counts`).
 
     Args:
         keypoints: (F, K, 4) (any leading axes) detected keypoints.
         gt_joints: (F, J, 3) ground-truth joints in the same normalised frame.
-        min_intensity: keypoints whose mean alpha is below it are not skeleton nodes (DESIGN §9:
-            0.2) and are ignored.
+        min_intensity: the alpha threshold (DESIGN §9: 0.2).
+        nodes: "per_frame" or "fixed".
 
     Returns:
-        SC in [1/K, 1]; 1 when every joint always has the same nearest keypoint.
+        SC in [0, 1]; 1 when every joint always has the same nearest keypoint.
     """
-    counts, frames = _counts_jit(jnp.asarray(keypoints), jnp.asarray(gt_joints), min_intensity)
+    counts, frames = _counts_jit(
+        jnp.asarray(keypoints), jnp.asarray(gt_joints), min_intensity, nodes
+    )
     return sc_score_from_counts(counts, float(frames))
 
 
-_counts_jit = jax.jit(nearest_keypoint_counts, static_argnums=2)
+_counts_jit = jax.jit(nearest_keypoint_counts, static_argnums=(2, 3))
 
 
 class SemanticConsistency:
-    """Eq. 21 over many batches: `update(kp, gt)` per batch, then `result()`.
+    """Eq. 21 over many batches: `update(kp, gt)` per batch, then `result()` (published
+    definition) or `result("fixed")` (fixed node set), or `scores()` for both, named.
 
-    The frames are kept (they are small) because the skeleton nodes are decided by the mean
+    The frames are kept (they are small) because the fixed node set is decided by the mean
     intensity over all of them before any nearest keypoint is counted.
     """
 
@@ -140,25 +168,90 @@ class SemanticConsistency:
         self._keypoints.append(kp)
         self._joints.append(gt)
 
-    def counts(self) -> tuple[np.ndarray, float]:
-        """(J, K) nearest-node counts over every frame added, and the number of frames."""
+    def counts(self, nodes: str = "per_frame") -> tuple[np.ndarray, float]:
+        """(J, K) nearest-keypoint counts over every frame added, and the number of frames."""
+        _check_nodes(nodes)
         if not self._keypoints:
             raise ValueError("SemanticConsistency: no frame added yet; call update() first")
         counts, frames = _counts_jit(
             jnp.asarray(np.concatenate(self._keypoints)),
             jnp.asarray(np.concatenate(self._joints)),
             self.min_intensity,
+            nodes,
         )
         return np.asarray(counts, np.float64), float(frames)
 
-    def per_joint(self) -> np.ndarray:
+    def per_joint(self, nodes: str = "per_frame") -> np.ndarray:
         """(J,) max_k p_j(k) of each ground-truth joint."""
-        counts, frames = self.counts()
+        counts, frames = self.counts(nodes)
         return counts.max(axis=-1) / frames
 
-    def result(self) -> float:
+    def result(self, nodes: str = "per_frame") -> float:
         """Eq. 21 over every frame added so far."""
-        return sc_score_from_counts(*self.counts())
+        return sc_score_from_counts(*self.counts(nodes))
+
+    def scores(self) -> dict[str, float]:
+        """Both definitions, named as every report names them: {"sc", "sc_fixed_nodes"}."""
+        return {"sc": self.result("per_frame"), "sc_fixed_nodes": self.result("fixed")}
+
+
+# --- bone-length variation ---------------------------------------------------------------------
+
+
+def bone_lengths(keypoints: Array, parents: Array) -> Array:
+    """Length of every keypoint's bone to its parent, ||mu_k - mu_parent(k)|| (0 at the root).
+
+    Args:
+        keypoints: (..., K, 4) or (..., K, 3) keypoints.
+        parents: (K,) int parent of every keypoint (the root is its own parent).
+
+    Returns:
+        (..., K).
+    """
+    mu = keypoints[..., :3]
+    return jnp.linalg.norm(mu - jnp.take(mu, jnp.asarray(parents), axis=-2), axis=-1)
+
+
+def bone_length_variation(
+    keypoints: Array, parents: Array, alpha_min: float = 0.2, eps: float = 1e-8
+) -> Array:
+    """Bone-length variation E_b (DESIGN §9): for every bone between kept nodes, the standard
+    deviation over time of its length divided by its mean length, averaged over the bones and
+    the sequences. 0 for a rigid skeleton whose bones keep their length.
+
+    The kept nodes are the keypoints whose mean alpha over all the given frames is >=
+    `alpha_min`; a bone (k, parent(k)) counts when both ends are kept. Pass the pruned tree
+    (`skeleton.prune`, children re-attached to their nearest kept ancestor) to measure the bones
+    of the pruned skeleton.
+
+    Args:
+        keypoints: (S, T, K, 4) sequences of keypoints, or one (T, K, 4) sequence; T >= 2.
+        parents: (K,) int parents of the skeleton (the root is its own parent).
+        alpha_min: node threshold on the mean intensity (0 keeps every keypoint).
+        eps: added to the mean length (a bone of length 0 scores 0, not nan).
+
+    Returns:
+        scalar; nan when the skeleton has no bone between kept nodes.
+    """
+    kp = keypoints[None] if keypoints.ndim == 3 else keypoints
+    if kp.ndim != 4 or kp.shape[-1] != 4 or kp.shape[1] < 2:
+        raise ValueError(
+            f"bone_length_variation: keypoints must be (S, T, K, 4) or (T, K, 4) with T >= 2, "
+            f"got {keypoints.shape}"
+        )
+    parents = jnp.asarray(parents)
+    if parents.shape != (kp.shape[-2],):
+        raise ValueError(
+            f"bone_length_variation: parents {parents.shape} do not match K={kp.shape[-2]}"
+        )
+    lengths = bone_lengths(kp, parents)  # (S, T, K)
+    cv = jnp.std(lengths, axis=1) / (jnp.mean(lengths, axis=1) + eps)  # (S, K)
+    mean_alpha = jnp.mean(kp[..., 3], axis=(0, 1))  # (K,)
+    kept = mean_alpha >= alpha_min
+    bone = kept & kept[parents] & (parents != jnp.arange(kp.shape[-2]))  # (K,)
+    n = jnp.sum(bone) * kp.shape[0]
+    total = jnp.sum(jnp.where(bone[None], cv, 0.0))
+    return jnp.where(n > 0, total / jnp.maximum(n, 1), jnp.nan)
 
 
 # --- Chamfer distances -------------------------------------------------------------------------

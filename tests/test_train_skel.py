@@ -139,9 +139,24 @@ def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(data_root, tmp_
     assert all(np.all(np.isfinite(x)) for x in _leaves(good))
 
 
+def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_path):
+    # A limit that has passed once the first step ends: that step is the last one, validated,
+    # checkpointed and finalised like step `steps` would be.
+    cfg = _cfg(data_root, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
+    summary = skel.train(cfg, tmp_path / "run", progress=False)
+    assert summary["step"] == 1 and summary["stopped_by_time_limit"] is True
+    assert "val/loss" in summary
+    with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
+        assert ckpt.all_steps() == [1]
+    assert (tmp_path / "run" / "skeleton.json").is_file()
+    full = skel.train(_cfg(data_root), tmp_path / "full", progress=False, finalize=False)
+    assert full["step"] == 6 and full["stopped_by_time_limit"] is False
+
+
 @pytest.mark.parametrize(
     ("override", "match"),
     [
+        ("time_limit_minutes=-1", "time_limit_minutes"),
         ("model.num_keypoints=1", "num_keypoints"),
         ("model.grid=18", "multiple of 4"),
         ("data.frames=2", "frames"),

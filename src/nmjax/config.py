@@ -174,6 +174,10 @@ class SkelTrainConfig:
     val_batches: int = 4
     ckpt_every: int = 500
     keep_checkpoints: int = 3
+    # Wall-clock limit of one invocation of the trainer, in minutes (0: none). Reached, the run
+    # stops after the current step as if it were the last one (validation, checkpoint,
+    # artefacts); fixed-budget comparisons (experiments/phase1_study.py) use it.
+    time_limit_minutes: float = 0.0
     run: str | None = None  # default: runs/skel-<data>-<timestamp>
 
 

@@ -71,6 +71,10 @@ def check_config(cfg: SkelTrainConfig) -> None:
     for name in ("steps", "log_every", "val_every", "val_batches", "ckpt_every"):
         if getattr(cfg, name) < 1:
             raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
+    if not cfg.time_limit_minutes >= 0:
+        raise ValueError(
+            f"time_limit_minutes must be >= 0 (0: no limit), got {cfg.time_limit_minutes}"
+        )
 
 
 # --- model, state and the compiled steps -------------------------------------------------------
@@ -248,6 +252,11 @@ def train(
     from nmjax.data import pipeline
 
     check_config(cfg)
+    if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
+        # Each host would read its own clock and could stop one step before the others.
+        raise ValueError(
+            "time_limit_minutes works in single-process runs only; set steps instead"
+        )
     mesh = parallel.data_mesh()
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
@@ -271,10 +280,11 @@ def train(
     summary: dict[str, Any] = {"run": str(run), "start_step": start}
     pbar = tqdm(total=cfg.steps, initial=start, disable=not progress, dynamic_ncols=True)
     t_last, step_last = time.perf_counter(), start
+    deadline = t_last + 60.0 * cfg.time_limit_minutes if cfg.time_limit_minutes > 0 else math.inf
     last_val: dict[str, float] = {}
     try:
-        step = start
-        while step < cfg.steps:
+        step, last = start, start >= cfg.steps
+        while not last:
             batch = next(data_iter)
             if step_hook is not None:
                 state = step_hook(step, state)
@@ -288,7 +298,8 @@ def train(
                     "lower learning_rate or clip_norm and resume or restart"
                 )
             pbar.update(1)
-            if step % cfg.log_every == 0 or step == cfg.steps:
+            last = step >= cfg.steps or time.perf_counter() >= deadline
+            if step % cfg.log_every == 0 or last:
                 now = time.perf_counter()
                 rate = (step - step_last) / max(now - t_last, 1e-9)
                 t_last, step_last = now, step
@@ -297,7 +308,7 @@ def train(
                 writer.write_scalars(step, logged)
                 pbar.set_postfix(loss=f"{loss:.4g}", steps_s=f"{rate:.2f}")
             val_metrics = None
-            if step % cfg.val_every == 0 or step == cfg.steps:
+            if step % cfg.val_every == 0 or last:
                 val_metrics, val_kp = validate(steps, state, val_batches)
                 last_val = val_metrics
                 writer.write_scalars(step, val_metrics)
@@ -306,10 +317,15 @@ def train(
                     f"step {step}: "
                     + " ".join(f"{k[4:]}={v:.4g}" for k, v in sorted(val_metrics.items()))
                 )
-            if step % cfg.ckpt_every == 0 or step == cfg.steps:
+            if step % cfg.ckpt_every == 0 or last:
                 if step not in ckpt.all_steps():
                     ckpt.save(step, state, metrics=val_metrics, data_iter=data_iter)
-        summary.update(step=step, train_traces=steps.train_traces, **last_val)
+        summary.update(
+            step=step,
+            stopped_by_time_limit=step < cfg.steps,
+            train_traces=steps.train_traces,
+            **last_val,
+        )
     finally:
         pbar.close()
         writer.close()

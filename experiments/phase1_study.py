@@ -1,0 +1,225 @@
+"""Phase-1 study at CPU scale: one change at a time against the `cpu` preset, at a fixed
+wall-clock budget, scored on the standard test split.
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/phase1_study.py --data synth-arm \
+        --variant base --minutes 10 [--seed 0]
+    .venv/bin/python experiments/phase1_study.py --report      # rewrite the table only
+
+Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>` with the
+`cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every variant gets
+the same wall time, whatever its step cost; the preset's learning-rate milestones lie beyond a
+short budget, so every variant trains at the constant peak rate), then evaluates it with
+`nmjax.evaluate.evaluate_phase1` on the test split of the body's standard set (`data/<data>`
+or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on another set. The row
+(command, change, steps, wall minutes, SC in both definitions, tracking CD, bone-length
+variation, kept nodes) replaces any earlier row of the same (data, variant, seed) in
+`experiments/results/phase1_study.json`, and `phase1_study.md` is rewritten from it.
+
+Variants that train on a bigger synthetic set generate it first (`nmjax.data.synthetic`) with
+another seed than the standard set, so no test motion is among their training sequences.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nmjax import io, metrics
+from nmjax.config import apply_overrides, skel_preset
+from nmjax.data import synthetic
+from nmjax.data.datasets import dataset_root
+from nmjax.evaluate import Detector, evaluate_phase1, phase1_outputs
+
+RESULTS = Path(__file__).parent / "results"
+RUNS = Path("runs") / "study"
+
+
+@dataclasses.dataclass(frozen=True)
+class Variant:
+    """One change against the `cpu` preset: config overrides and/or a bigger training set."""
+
+    change: str
+    overrides: tuple[str, ...] = ()
+    sequences: int | None = None  # train on a generated set of this many sequences (seed 1)
+
+
+# sigma_g is in heatmap cells: at G=32 the 8^3 heatmaps make a cell twice as wide relative to the
+# body as the paper's 16^3 at G=64, so "sigma_paper" halves sigma_g to keep the paper's width in
+# body units (1.5 -> 0.75 on synth-arm, 1.0 -> 0.5 on synth-hand).
+VARIANTS: dict[str, Variant] = {
+    "base": Variant("the cpu preset"),
+    "data10x": Variant("10x training sequences (300, seed 1)", sequences=300),
+    "sigma_paper": Variant("sigma_g halved (the paper's width in body units)", ("sigma_half",)),
+    "vol10": Variant("w_vol = 10", ("weights.vol=10.0",)),
+    "lr3e-3": Variant("peak learning rate 3e-3", ("learning_rate=3e-3",)),
+    "c32": Variant(
+        "detector width C = 32 (hourglass 32/48/64)",
+        ("model.channels=32", "model.hourglass_channels=(32,48,64)"),
+    ),
+    "batch4x3": Variant(
+        "batch 4 crops of T = 3 frames (same frames per step)",
+        ("data.batch_size=4", "data.frames=3"),
+    ),
+}
+
+
+def variant_config(data: str, name: str, minutes: float, seed: int):
+    """The training configuration of variant `name` of the study on body `data`."""
+    if name not in VARIANTS:
+        raise SystemExit(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
+    variant = VARIANTS[name]
+    cfg = skel_preset(data, "cpu")
+    overrides = [o for o in variant.overrides if o != "sigma_half"]
+    if "sigma_half" in variant.overrides:
+        overrides.append(f"model.sigma_g={cfg.model.sigma_g / 2}")
+    cfg = apply_overrides(cfg, overrides)
+    cfg = dataclasses.replace(
+        cfg,
+        seed=seed,
+        steps=100_000,  # the wall-clock limit ends the run
+        time_limit_minutes=minutes,
+        data=dataclasses.replace(cfg.data, seed=seed),
+    )
+    if variant.sequences is not None:
+        root = dataset_root(f"{data}-n{variant.sequences}-seed1")
+        if not synthetic.is_complete(root):
+            synthetic.generate(data, root, num_sequences=variant.sequences, seed=1)
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root)))
+    return cfg
+
+
+def standard_test_detector(run: Path, data: str) -> Detector:
+    """The run's detector, pointed at the standard set of `data` for its test split."""
+    detector = Detector.load(run)
+    cfg = detector.cfg
+    return dataclasses.replace(
+        detector, cfg=dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=None))
+    )
+
+
+def localisation(detector: Detector, max_crops: int) -> dict[str, float]:
+    """What SC alone hides (keypoints bunched in one place score high): the mean distance from
+    each ground-truth joint to its nearest candidate keypoint (alpha >= 0.2 in that frame), and
+    how many distinct keypoints are the most frequent nearest one of some joint."""
+    dists, counts = [], None
+    for _, _, joints, keypoints, _ in phase1_outputs(detector, max_crops):
+        kp = keypoints.reshape(-1, *keypoints.shape[-2:])
+        gt = joints.reshape(-1, *joints.shape[-2:])
+        d = np.linalg.norm(gt[:, :, None] - kp[:, None, :, :3], axis=-1)  # (F, J, K)
+        d = np.where(kp[:, None, :, 3] >= 0.2, d, np.inf)
+        dists.append(d.min(axis=-1))
+        c = np.asarray(metrics.nearest_keypoint_counts(kp, gt)[0])
+        counts = c if counts is None else counts + c
+    return {
+        "joint_distance": float(np.mean(np.concatenate(dists))),
+        "distinct_nearest": int(len(np.unique(counts.argmax(axis=-1)))),
+    }
+
+
+def run_variant(data: str, name: str, minutes: float, seed: int, max_crops: int) -> dict:
+    from nmjax.train import skel
+
+    cfg = variant_config(data, name, minutes, seed)
+    run = RUNS / f"{data}-{name}-s{seed}"
+    begin = time.perf_counter()
+    summary = skel.train(cfg, run, overwrite=True, progress=sys.stderr.isatty())
+    wall = (time.perf_counter() - begin) / 60
+    detector = standard_test_detector(run, data)
+    results = evaluate_phase1(detector, max_crops)
+    results["localisation"] = localisation(detector, max_crops)
+    io.write_json(run / "study_eval.json", results)
+    skeleton = json.loads((run / "skeleton.json").read_text())
+    return {
+        "data": data,
+        "variant": name,
+        "change": VARIANTS[name].change,
+        "seed": seed,
+        "command": "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv),
+        "overrides": list(VARIANTS[name].overrides),
+        "train_root": cfg.data.root,
+        "minutes_budget": minutes,
+        "steps": int(summary["step"]),
+        "wall_minutes": wall,
+        "load_average": os.getloadavg()[0],
+        "val_sc_last": summary.get("val/sc_score"),
+        "sc": results["sc"]["score"],
+        "sc_std_over_joints": results["sc"]["std_over_joints"],
+        "sc_fixed_nodes": results["sc_fixed_nodes"]["score"],
+        "tracking_cd": results["tracking"]["mean"],
+        "tracking_cd_ci95": results["tracking"]["ci95"],
+        "bone_length_variation": results["bone_length_variation"]["mean"],
+        "kept_nodes": results["bone_length_variation"]["kept_nodes"],
+        **results["localisation"],
+        "num_keypoints": len(skeleton["parents"]),
+        "run": str(run),
+    }
+
+
+def fmt(x, digits: int = 3) -> str:
+    return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
+
+
+def write_report(rows: list[dict]) -> None:
+    io.write_json(RESULTS / "phase1_study.json", rows)
+    lines = [
+        "# Phase-1 study at CPU scale",
+        "",
+        "Made by `experiments/phase1_study.py` (the command of each row below). Every variant "
+        "trains from the `cpu` preset for a fixed wall-clock budget (`time_limit_minutes`) and "
+        "is scored on the standard test split of its body (`nmjax.evaluate.evaluate_phase1`, up "
+        "to 8 crops per test sequence). SC: Eq. 21 as published (per-frame alpha >= 0.2); SC "
+        "fixed: the pruned skeleton's node set; CD: 4D-tracking Chamfer x1e4; bone var: std / "
+        "mean of each bone's length over a crop, mean over bones and crops; nodes: kept / K; "
+        "joint d: mean distance from a joint to its nearest keypoint (the cube is [-1, 1]^3); "
+        "distinct: keypoints that are the most frequent nearest one of some joint (bunched "
+        "keypoints score a high SC with few distinct ones). "
+        "load: the 1-minute load average when the row was written (2 cores; above 2 the run "
+        "shared them).",
+        "",
+        "| body | variant | change | seed | steps | wall min | SC | SC fixed | CD | bone var "
+        "| nodes | joint d | distinct | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['data']} | {r['variant']} | {r['change']} | {r['seed']} | {r['steps']} | "
+            f"{r['wall_minutes']:.1f} | {fmt(r['sc'])} | {fmt(r['sc_fixed_nodes'])} | "
+            f"{fmt(r['tracking_cd'], 1)} | {fmt(r['bone_length_variation'])} | "
+            f"{r['kept_nodes']}/{r['num_keypoints']} | {fmt(r['joint_distance'])} | "
+            f"{r['distinct_nearest']} | {r['load_average']:.1f} |"
+        )
+    lines += ["", "## Commands", ""]
+    lines += [f"- {r['data']} {r['variant']} s{r['seed']}: `{r['command']}`" for r in rows]
+    io.write_text(RESULTS / "phase1_study.md", "\n".join(lines) + "\n")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", default="synth-arm")
+    parser.add_argument("--variant", default="base", help=f"one of {', '.join(VARIANTS)}")
+    parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
+    parser.add_argument("--report", action="store_true", help="only rewrite the table")
+    args = parser.parse_args()
+    path = RESULTS / "phase1_study.json"
+    rows = json.loads(path.read_text()) if path.is_file() else []
+    if not args.report:
+        row = run_variant(args.data, args.variant, args.minutes, args.seed, args.max_crops)
+        key = (row["data"], row["variant"], row["seed"])
+        rows = [r for r in rows if (r["data"], r["variant"], r["seed"]) != key] + [row]
+        print(json.dumps(row, indent=1))
+    write_report(rows)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

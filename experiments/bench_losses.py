@@ -120,7 +120,7 @@ def np_trajectory(kp, a):
         un = u / np.maximum(np.linalg.norm(u, axis=-1, keepdims=True), 1e-6)
         return np.einsum("...kd,...ld->...kl", un, un).reshape(-1, K, K).mean(0)
 
-    return (a.max(0) * (0.5 - (cos(vel) + cos(acc)) / 4)).mean()
+    return (a.max(0) * (1.0 - (cos(vel) + cos(acc)) / 2)).mean()
 
 
 # --- timing ------------------------------------------------------------------------------------

@@ -8,7 +8,9 @@ wall-clock budget, scored on the standard test split.
 Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>` with the
 `cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every variant gets
 the same wall time, whatever its step cost; the preset's learning-rate milestones lie beyond a
-short budget, so every variant trains at the constant peak rate), then evaluates it with
+short budget, so every variant trains at the constant peak rate), or after `--steps` steps when
+the cores are shared with other work (a wall-clock budget then measures the load, not the
+variant; compare step-budget rows only among variants of equal step cost), then evaluates it with
 `nmjax.evaluate.evaluate_phase1` on the test split of the body's standard set (`data/<data>`
 or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on another set. The row
 (command, change, steps, wall minutes, SC in both definitions, tracking CD, bone-length
@@ -71,8 +73,9 @@ VARIANTS: dict[str, Variant] = {
 }
 
 
-def variant_config(data: str, name: str, minutes: float, seed: int):
-    """The training configuration of variant `name` of the study on body `data`."""
+def variant_config(data: str, name: str, minutes: float, seed: int, steps: int | None = None):
+    """The training configuration of variant `name` of the study on body `data`: a wall-clock
+    budget of `minutes`, or exactly `steps` steps when given."""
     if name not in VARIANTS:
         raise SystemExit(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
     variant = VARIANTS[name]
@@ -84,8 +87,8 @@ def variant_config(data: str, name: str, minutes: float, seed: int):
     cfg = dataclasses.replace(
         cfg,
         seed=seed,
-        steps=100_000,  # the wall-clock limit ends the run
-        time_limit_minutes=minutes,
+        steps=100_000 if steps is None else steps,  # else the wall-clock limit ends the run
+        time_limit_minutes=minutes if steps is None else 0.0,
         data=dataclasses.replace(cfg.data, seed=seed),
     )
     if variant.sequences is not None:
@@ -124,10 +127,12 @@ def localisation(detector: Detector, max_crops: int) -> dict[str, float]:
     }
 
 
-def run_variant(data: str, name: str, minutes: float, seed: int, max_crops: int) -> dict:
+def run_variant(
+    data: str, name: str, minutes: float, seed: int, max_crops: int, steps: int | None = None
+) -> dict:
     from nmjax.train import skel
 
-    cfg = variant_config(data, name, minutes, seed)
+    cfg = variant_config(data, name, minutes, seed, steps)
     run = RUNS / f"{data}-{name}-s{seed}"
     begin = time.perf_counter()
     summary = skel.train(cfg, run, overwrite=True, progress=sys.stderr.isatty())
@@ -145,7 +150,7 @@ def run_variant(data: str, name: str, minutes: float, seed: int, max_crops: int)
         "command": "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv),
         "overrides": list(VARIANTS[name].overrides),
         "train_root": cfg.data.root,
-        "minutes_budget": minutes,
+        "budget": f"{steps} steps" if steps is not None else f"{minutes:g} min",
         "steps": int(summary["step"]),
         "wall_minutes": wall,
         "load_average": os.getloadavg()[0],
@@ -184,13 +189,14 @@ def write_report(rows: list[dict]) -> None:
         "load: the 1-minute load average when the row was written (2 cores; above 2 the run "
         "shared them).",
         "",
-        "| body | variant | change | seed | steps | wall min | SC | SC fixed | CD | bone var "
-        "| nodes | joint d | distinct | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| body | variant | change | seed | budget | steps | wall min | SC | SC fixed | CD "
+        "| bone var | nodes | joint d | distinct | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['data']} | {r['variant']} | {r['change']} | {r['seed']} | {r['steps']} | "
+            f"| {r['data']} | {r['variant']} | {r['change']} | {r['seed']} | {r['budget']} | "
+            f"{r['steps']} | "
             f"{r['wall_minutes']:.1f} | {fmt(r['sc'])} | {fmt(r['sc_fixed_nodes'])} | "
             f"{fmt(r['tracking_cd'], 1)} | {fmt(r['bone_length_variation'])} | "
             f"{r['kept_nodes']}/{r['num_keypoints']} | {fmt(r['joint_distance'])} | "
@@ -206,6 +212,12 @@ def main() -> int:
     parser.add_argument("--data", default="synth-arm")
     parser.add_argument("--variant", default="base", help=f"one of {', '.join(VARIANTS)}")
     parser.add_argument("--minutes", type=float, default=10.0, help="wall-clock budget")
+    parser.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="a fixed step budget instead (for runs that share the cores with other work)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
     parser.add_argument("--report", action="store_true", help="only rewrite the table")
@@ -213,7 +225,9 @@ def main() -> int:
     path = RESULTS / "phase1_study.json"
     rows = json.loads(path.read_text()) if path.is_file() else []
     if not args.report:
-        row = run_variant(args.data, args.variant, args.minutes, args.seed, args.max_crops)
+        row = run_variant(
+            args.data, args.variant, args.minutes, args.seed, args.max_crops, args.steps
+        )
         key = (row["data"], row["variant"], row["seed"])
         rows = [r for r in rows if (r["data"], r["variant"], r["seed"]) != key] + [row]
         print(json.dumps(row, indent=1))

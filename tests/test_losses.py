@@ -69,7 +69,7 @@ def np_trajectory_cost(kp):
         un = u / n[..., None]
         return np.einsum("btkd,btld->btkl", un, un)
 
-    return 0.5 - (cos(vel).mean((0, 1)) + cos(acc).mean((0, 1))) / 4
+    return 1.0 - (cos(vel).mean((0, 1)) + cos(acc).mean((0, 1))) / 2
 
 
 # --- analytic cases ----------------------------------------------------------------------------
@@ -124,11 +124,29 @@ def test_trajectory_cost_parallel_and_opposite():
     parallel = np.stack([np.c_[path, ones], np.c_[path + 1.0, ones]], axis=1)[None]
     opposite = np.stack([np.c_[path, ones], np.c_[-path, ones]], axis=1)[None]
     np.testing.assert_allclose(losses.trajectory_cost(jnp.asarray(parallel)), 0.0, atol=1e-6)
+    # Opposite velocities and accelerations: (1 - (-1)) / 2 + (1 - (-1)) / 2 = 2 (the released
+    # scale, DESIGN §5); the printed Eq. 14's scale halves it.
     cost = np.asarray(losses.trajectory_cost(jnp.asarray(opposite)))
-    np.testing.assert_allclose(cost, [[0.0, 1.0], [1.0, 0.0]], atol=1e-6)
+    np.testing.assert_allclose(cost, [[0.0, 2.0], [2.0, 0.0]], atol=1e-6)
+    printed = np.asarray(losses.trajectory_cost(jnp.asarray(opposite), printed_scale=True))
+    np.testing.assert_allclose(printed, [[0.0, 1.0], [1.0, 0.0]], atol=1e-6)
     a = jnp.array([[0.0, 1.0], [1.0, 0.0]])
-    np.testing.assert_allclose(losses.graph_trajectory(jnp.asarray(opposite), a), 0.5, atol=1e-6)
+    np.testing.assert_allclose(losses.graph_trajectory(jnp.asarray(opposite), a), 1.0, atol=1e-6)
     np.testing.assert_allclose(losses.graph_trajectory(jnp.asarray(parallel), a), 0.0, atol=1e-6)
+
+
+def test_trajectory_cost_two_keypoints_known_cosine():
+    # Keypoint 0 moves along x with velocities 1, 2, 4 (accelerations 1, 2: along x); keypoint 1
+    # moves along (1, 1, 0)/sqrt(2) with the same speeds. cos(vel) = cos(acc) = 1/sqrt(2) in
+    # every frame, so C_01 = 2 (1 - 1/sqrt(2)) / 2 = 1 - 1/sqrt(2) = 0.2929.
+    steps = np.array([0.0, 1.0, 3.0, 7.0], np.float32)[:, None]
+    along_x = steps * np.array([1.0, 0.0, 0.0], np.float32)
+    diagonal = steps * np.array([1.0, 1.0, 0.0], np.float32) / np.sqrt(2)
+    ones = np.ones((4, 1), np.float32)
+    kp = np.stack([np.c_[along_x, ones], np.c_[diagonal, ones]], axis=1)[None]  # (1, 4, 2, 4)
+    cost = np.asarray(losses.trajectory_cost(jnp.asarray(kp)))
+    np.testing.assert_allclose(cost[0, 1], 1 - 1 / np.sqrt(2), rtol=1e-5)
+    np.testing.assert_allclose(cost, cost.T, atol=1e-7)
 
 
 def test_affinity_from_params_layout():

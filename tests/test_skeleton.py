@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from nmjax import cli, io
 from nmjax.skeleton import (
     Skeleton,
+    algorithm1_parents,
     extract_skeleton,
     find_parents,
     linear_blend_skinning,
@@ -109,14 +110,20 @@ def assert_valid_tree(skeleton: Skeleton, num: int):
     assert skeleton.depth == max(depths)
 
 
+# Algorithm 1 links every keypoint to exactly N others, so with N >= 2 a leaf gets a second
+# edge and the tree need not be the one the strongest entries follow; with N = 1 the links of a
+# tree affinity are the tree. The filtered variant drops the weak second links at any N.
+RECOVERING = [("algorithm1", 1), ("filtered", 1), ("filtered", 2), ("filtered", 3)]
+
+
 @pytest.mark.parametrize("name", sorted(TREES))
-@pytest.mark.parametrize("n_neighbors", [1, 2, 3])
-def test_known_trees_are_recovered_with_their_centre_as_root(name, n_neighbors):
+@pytest.mark.parametrize(("method", "n_neighbors"), RECOVERING)
+def test_known_trees_are_recovered_with_their_centre_as_root(name, method, n_neighbors):
     rng = np.random.default_rng(n_neighbors)
     perm = rng.permutation(len(TREES[name]))
     parents = permute_tree(TREES[name], perm)
     affinity = tree_affinity(parents, rng, noise=0.005)
-    skeleton = extract_skeleton(affinity, n_neighbors)
+    skeleton = extract_skeleton(affinity, n_neighbors, method=method)
     sums = tree_distances(parents).sum(axis=1)
     centre = int(np.flatnonzero(sums == sums.min())[0])
     assert skeleton.root == centre
@@ -125,21 +132,90 @@ def test_known_trees_are_recovered_with_their_centre_as_root(name, n_neighbors):
     assert_valid_tree(skeleton, len(parents))
 
 
+def six_node_affinity():
+    """Rows of I (zero diagonal) whose top-2 links make the graph 0-1, 0-4, 0-5, 1-2, 1-3, 1-4,
+    2-3, 4-5; the strongest entries follow the tree 0-1, 1-2, 2-3, 1-4, 4-5."""
+    rows = {
+        0: {1: 0.6, 4: 0.2, 2: 0.1, 3: 0.05, 5: 0.05},
+        1: {0: 0.4, 2: 0.3, 4: 0.2, 3: 0.05, 5: 0.05},
+        2: {1: 0.5, 3: 0.4, 0: 0.05, 4: 0.03, 5: 0.02},
+        3: {2: 0.7, 1: 0.2, 0: 0.05, 4: 0.03, 5: 0.02},
+        4: {1: 0.5, 5: 0.4, 0: 0.05, 2: 0.03, 3: 0.02},
+        5: {4: 0.8, 0: 0.1, 1: 0.05, 2: 0.03, 3: 0.02},
+    }
+    a = np.zeros((6, 6))
+    for i, row in rows.items():
+        for j, v in row.items():
+            a[i, j] = v
+    return a
+
+
+def test_algorithm1_six_nodes_by_hand():
+    # Step 2 (top-2 links, symmetrised): 0:{1,4,5} 1:{0,2,3,4} 2:{1,3} 3:{1,2} 4:{0,1,5} 5:{0,4}.
+    # Step 3, summed hop distances: [7, 6, 9, 9, 7, 10]; connected.
+    # Step 5, equal sums: (0, 4) with common neighbours 1 and 5: I[1,0]=.4 > I[1,4]=.2 -> edge
+    #   (1,4) +1e-5; I[5,0]=.1 < I[5,4]=.8 -> edge (5,0) +1e-5. (2, 3), common neighbour 1:
+    #   I[1,2]=.3 > I[1,3]=.05 -> edge (1,3) +1e-5.
+    # Step 6, weighted sums (e = 1e-5): node 1: 1 + 1 + (1+e) + (1+e) + (2+e) = 6 + 3e, the
+    #   smallest: root 1, ranks r = [1, 0, 1, 1+e, 1+e, 2+e].
+    # Step 7: 0 -> 1 (its only nearer neighbour); 2 -> 1; 3: neighbours 1 (gap -1-e), 2 (gap -e,
+    #   nearer in rank) -> 2; 4: neighbours 0 (gap -e), 1 (gap -1-e) -> 0; 5: 0 (gap -1-e),
+    #   4 (gap -1) -> 4. No equal ranks among neighbours.
+    # Step 8, distances along the tree: [1, 0, 1, 2, 2, 3] -> order 1, 0, 2, 3, 4, 5.
+    skeleton = extract_skeleton(six_node_affinity(), 2)
+    assert skeleton == Skeleton(
+        parents=(1, 1, 1, 2, 0, 4), root=1, order=(1, 0, 2, 3, 4, 5), depth=3
+    )
+    # The filtered variant drops the links at or below the row mean (0.2): the tree the strongest
+    # entries follow, 4 under 1.
+    filtered = extract_skeleton(six_node_affinity(), 2, method="filtered")
+    assert filtered.parents == (1, 1, 1, 2, 1, 4)
+
+
+def test_algorithm1_same_rank_rule_by_hand():
+    # N = 1: 0 -> 1, 1 -> 2, 2 -> 0, 3 -> 1, 4 -> 0: graph 0-1, 0-2, 1-2, 1-3, 0-4.
+    # Hop sums [5, 5, 6, 8, 8]. Step 5: (0, 1) tie, common neighbour 2, I[2,0]=.5 > I[2,1]=.3 ->
+    #   edge (2,1) +1e-5; (3, 4) tie without a common neighbour.
+    # Root 0 (sum 5 against 5 + 1e-5 for node 1); ranks [0, 1, 1, 2, 1].
+    # Step 7: 1 and 2 are neighbours of equal rank 1 whose shared nearer neighbour is m = 0.
+    #   For k = 1, n = 2: I[0,2]=.3 > I[0,1]=.6? no -> 1 keeps 0. For k = 2, n = 1: I[0,1] >
+    #   I[0,2] -> 2 hangs below 1. 3 -> 1, 4 -> 0.
+    # Step 8: tree distances [0, 1, 2 + 1e-5, 2, 1] -> order 0, 1, 4, 3, 2.
+    a = np.zeros((5, 5))
+    a[0, [1, 2, 3, 4]] = [0.6, 0.3, 0.05, 0.05]
+    a[1, [2, 0, 3, 4]] = [0.5, 0.3, 0.1, 0.1]
+    a[2, [0, 1, 3, 4]] = [0.5, 0.3, 0.1, 0.1]
+    a[3, [1, 0, 2, 4]] = [0.7, 0.1, 0.1, 0.1]
+    a[4, [0, 1, 2, 3]] = [0.7, 0.1, 0.1, 0.1]
+    skeleton = extract_skeleton(a, 1)
+    assert skeleton == Skeleton(parents=(0, 0, 1, 1, 0), root=0, order=(0, 1, 4, 3, 2), depth=2)
+    # Step 7 alone on the same graph and ranks: when the shared ancestor prefers 2, 1 hangs below 2.
+    bin_ = np.zeros((5, 5), dtype=bool)
+    for i, j in [(0, 1), (0, 2), (1, 2), (1, 3), (0, 4)]:
+        bin_[i, j] = bin_[j, i] = True
+    rank = np.array([0.0, 1, 1, 2, 1])
+    assert list(algorithm1_parents(a, bin_, rank, 0)) == [0, 0, 1, 1, 0]
+    a[0, 1], a[0, 2] = 0.3, 0.6
+    assert list(algorithm1_parents(a, bin_, rank, 0)) == [0, 2, 0, 1, 0]
+
+
 def test_hand_root_is_the_palm_and_depth_is_finger_length():
-    skeleton = extract_skeleton(tree_affinity(HAND, np.random.default_rng(0)))
-    assert skeleton.root == 1
-    assert skeleton.depth == 3
-    assert skeleton.parents[2::3] == (1,) * 5
+    for method, n in (("algorithm1", 1), ("filtered", 2)):
+        skeleton = extract_skeleton(tree_affinity(HAND, np.random.default_rng(0)), n, method=method)
+        assert skeleton.root == 1
+        assert skeleton.depth == 3
+        assert skeleton.parents[2::3] == (1,) * 5
 
 
-def test_disconnected_affinity_gives_one_tree_keeping_each_parts_edges():
+@pytest.mark.parametrize(("method", "n_neighbors"), [("algorithm1", 1), ("filtered", 2)])
+def test_disconnected_affinity_gives_one_tree_keeping_each_parts_edges(method, n_neighbors):
     rng = np.random.default_rng(0)
     first, second = CHAIN, [0, 0, 0, 1, 1]  # a 9-chain and a small tree, no affinity between
     num = len(first) + len(second)
     a = np.zeros((2, num, num))
     a[:, : len(first), : len(first)] = tree_affinity(first, rng)
     a[:, len(first) :, len(first) :] = tree_affinity(second, rng)
-    skeleton = extract_skeleton(a, 2)
+    skeleton = extract_skeleton(a, n_neighbors, method=method)
     assert_valid_tree(skeleton, num)
     shifted = [p + len(first) for p in second]
     expected = edge_set(first) | {tuple(sorted((k + len(first), p))) for k, p in enumerate(shifted)}
@@ -157,13 +233,20 @@ def test_disconnected_affinity_gives_one_tree_keeping_each_parts_edges():
 
 def test_isolated_uniform_rows_are_still_attached():
     a = np.ones((6, 6))  # all rows uniform: no neighbour above the row mean
-    skeleton = extract_skeleton(a, 2)
+    skeleton = extract_skeleton(a, 2, method="filtered")
     assert_valid_tree(skeleton, 6)
     assert skeleton.root == 0 and skeleton.depth == 1
+    assert_valid_tree(extract_skeleton(a, 2), 6)
 
 
 def test_degenerate_affinities():
-    assert extract_skeleton(np.zeros((2, 5, 5))).parents == (0, 0, 0, 0, 0)
+    # All-zero rows: Algorithm 1 links each node to the two lowest other indices (0-1, 0-2, 1-2,
+    # 0-3, 1-3, 0-4, 1-4); hop sums [4, 4, 6, 6, 6]. Ties (0,1), (2,3), (2,4), (3,4) with equal
+    # (zero) influences lengthen the edges towards the lower index of each pair: (0,2) by 3e-5,
+    # (0,3) and (1,2) by 2e-5, (0,4) and (1,3) by 1e-5. Weighted sums: 0 -> 4 + 6e-5, 1 -> 4 +
+    # 3e-5: root 1, ranks [1, 0, 1+2e-5, 1+1e-5, 1]; 2 and 3 take 0 (nearest in rank), 4 takes 1.
+    assert extract_skeleton(np.zeros((2, 5, 5))).parents == (1, 1, 0, 0, 1)
+    assert extract_skeleton(np.zeros((2, 5, 5)), method="filtered").parents == (0, 0, 0, 0, 0)
     single = extract_skeleton(np.zeros((1, 1)))
     assert single == Skeleton(parents=(0,), root=0, order=(0,), depth=0)
 
@@ -174,18 +257,57 @@ def test_degenerate_affinities():
     num_matrices=st.integers(1, 3),
     n_neighbors=st.integers(1, 4),
     sparsity=st.sampled_from([0.0, 0.5, 0.9]),
+    method=st.sampled_from(["algorithm1", "filtered"]),
     seed=st.integers(0, 2**31 - 1),
 )
 def test_random_affinities_always_give_a_deterministic_valid_tree(
-    num, num_matrices, n_neighbors, sparsity, seed
+    num, num_matrices, n_neighbors, sparsity, method, seed
 ):
     rng = np.random.default_rng(seed)
     a = rng.random((num_matrices, num, num)) * (rng.random((num_matrices, num, num)) >= sparsity)
     if rng.random() < 0.3:
         a = np.round(a, 1)  # many exact ties
-    skeleton = extract_skeleton(a, n_neighbors)
+    skeleton = extract_skeleton(a, n_neighbors, method=method)
     assert_valid_tree(skeleton, num)
-    assert extract_skeleton(a.copy(), n_neighbors) == skeleton
+    assert extract_skeleton(a.copy(), n_neighbors, method=method) == skeleton
+
+
+def test_same_rank_cycles_are_broken_into_a_tree():
+    # Ranks: root 0, then 1, 2, 3 all at rank 1, all linked to each other and to 0. The shared
+    # nearer neighbour is m = 0 for every pair, so I[0, .] = [., .5, .3, .2] decides, and the last
+    # same-rank neighbour that m prefers wins: 1 keeps 0; 2 takes 1; 3 takes 1, then 2. One m
+    # cannot close a cycle (it would need I[0,2] > I[0,1] > I[0,3] > I[0,2]).
+    bin_ = np.ones((4, 4), dtype=bool)
+    np.fill_diagonal(bin_, False)
+    a = np.zeros((4, 4))
+    a[0, 1:] = [0.5, 0.3, 0.2]
+    parents = algorithm1_parents(a, bin_, np.array([0.0, 1, 1, 1]), 0)
+    assert list(parents) == [0, 0, 1, 2]
+    # Three same-rank nodes whose shared nearer neighbours differ can choose each other in a
+    # cycle; the lowest index of the cycle then takes its nearer neighbour.
+    bin_ = np.zeros((7, 7), dtype=bool)
+    edges = [(0, 4), (0, 5), (0, 6), (1, 2), (2, 3), (3, 1), (1, 4), (2, 4), (2, 5), (3, 5)]
+    edges += [(3, 6), (1, 6)]
+    for i, j in edges:
+        bin_[i, j] = bin_[j, i] = True
+    rank = np.array([0.0, 2, 2, 2, 1, 1.1, 1.2])
+    a = np.zeros((7, 7))
+    a[4, 2], a[4, 1] = 0.9, 0.1  # k=1, n=2: m = 4 (shared, smallest rank) prefers 2: 1 -> 2
+    a[5, 3], a[5, 2] = 0.9, 0.1  # k=2, n=3: m = 5 prefers 3: 2 -> 3
+    a[6, 1], a[6, 3] = 0.9, 0.1  # k=3, n=1: m = 6 prefers 1: 3 -> 1, closing 1 -> 2 -> 3 -> 1
+    parents = algorithm1_parents(a, bin_, rank, 0)
+    assert_valid_tree(skeleton_from_parents(parents), 7)
+    # 1, the lowest of the cycle, takes its neighbour nearest in rank among those nearer the
+    # root: 6 (rank 1.2) before 4 (rank 1).
+    assert list(parents[1:4]) == [6, 3, 1]
+
+
+def test_bad_method_and_order_are_named():
+    with pytest.raises(ValueError, match="unknown skeleton method"):
+        extract_skeleton(np.ones((3, 3)), method="mst")
+    with pytest.raises(ValueError, match="topological order"):
+        skeleton_from_parents([0, 0, 1], order=[0, 2, 1])
+    assert skeleton_from_parents([0, 0, 0], order=[0, 2, 1]).order == (0, 2, 1)
 
 
 def test_same_rank_rule_adopts_the_neighbour_the_shared_ancestor_prefers():
@@ -229,6 +351,9 @@ def test_save_and_load_round_trip(tmp_path):
     skeleton = skeleton_from_parents(BINARY)
     skeleton.save(tmp_path / "s.json", intensities=np.arange(15) / 15)
     assert load_skeleton(tmp_path / "s.json") == skeleton
+    tree_ordered = extract_skeleton(six_node_affinity())  # an order that is not breadth first
+    tree_ordered.save(tmp_path / "t.json")
+    assert load_skeleton(tmp_path / "t.json") == tree_ordered
     data = json.loads((tmp_path / "s.json").read_text())
     assert data["order"] == list(skeleton.order) and len(data["intensities"]) == 15
     with pytest.raises(FileNotFoundError, match="nmjax extract-skeleton"):
@@ -335,9 +460,13 @@ def test_cli_writes_skeleton_json_and_figure(tmp_path, capsys):
     run = tmp_path / "skel-synth-hand-0"
     run.mkdir()
     keypoints = fake_run(run, HAND, np.random.default_rng(0))
-    assert cli.main(["extract-skeleton", "--run", str(run)]) == 0
+    assert cli.main(["extract-skeleton", "--run", str(run), "--neighbors", "1"]) == 0
+    assert "root 1" in capsys.readouterr().out
+    assert json.loads((run / "skeleton.json").read_text())["method"] == "algorithm1"
+    assert cli.main(["extract-skeleton", "--run", str(run), "--method", "filtered"]) == 0
     assert "root 1" in capsys.readouterr().out
     data = json.loads((run / "skeleton.json").read_text())
+    assert data["method"] == "filtered"
     assert data["parents"] == reroot(HAND, 1) and data["root"] == 1
     assert data["order"][0] == 1 and data["depth"] == 3
     np.testing.assert_allclose(data["intensities"], keypoints[:, 3], rtol=1e-6)

@@ -267,27 +267,30 @@ def _cosine(u: Array, v: Array) -> Array:
     return jnp.einsum("...kd,...ld->...kl", u / nu[..., None], v / nv[..., None])
 
 
-def trajectory_cost(keypoints: Array, intensity_weighted: bool = False) -> Array:
+def trajectory_cost(
+    keypoints: Array, intensity_weighted: bool = False, printed_scale: bool = False
+) -> Array:
     """Eq. 14's cost C(mu_k, mu_k'), averaged over the batch and time.
 
     vel_t = mu_t+1 - mu_t, acc_t = vel_t+1 - vel_t (finite differences over T);
-    C = 1/2 - (cos(vel_k, vel_k') + cos(acc_k, acc_k')) / 4
-      = ((1 - cos_vel) / 2 + (1 - cos_acc) / 2) / 2,
-    each cosine averaged over its own frames (and every leading axis). The scale is the printed
-    Eq. 14's (C in [0, 1]); DESIGN §5 writes the sum of the two halves without the outer 1/2,
-    which only doubles the term (absorbed by its weight). The printed Eq. 14 divides each inner
-    product by its own absolute value (a sign); the released code uses the cosine similarity,
-    computed here with both norms clamped to 1e-6 (a zero velocity gives cosine 0). With
-    `intensity_weighted`, row k is weighted by alpha_k averaged onto the velocity frames
-    ((alpha_t + alpha_t+1) / 2) and onto the acceleration frames (mean of the two velocity-frame
-    weights).
+    C = (1 - cos(vel_k, vel_k')) / 2 + (1 - cos(acc_k, acc_k')) / 2, in [0, 2],
+    each cosine averaged over its own frames (and every leading axis). That is the released
+    code's cost (DESIGN §5), on which the per-dataset w_traj of Tables 4-8 were tuned; the
+    default. `printed_scale=True` gives the printed Eq. 14's [0, 1] scale (the same cost halved).
+    The printed Eq. 14 divides each inner product by its own absolute value (a sign); the
+    released code uses the cosine similarity, computed here with both norms clamped to 1e-6 (a
+    zero velocity gives cosine 0). With `intensity_weighted`, row k is weighted by alpha_k
+    averaged onto the velocity frames ((alpha_t + alpha_t+1) / 2) and onto the acceleration
+    frames (mean of the two velocity-frame weights).
 
     Args:
         keypoints: (..., T, K, 4) with T >= 3.
         intensity_weighted: weight row k by the (frame-averaged) alpha_k (Eq. 13 as printed).
+        printed_scale: halve the cost (the printed Eq. 14's range [0, 1]).
 
     Returns:
-        (K, K): 0 for parallel motion, 1 for opposite motion (velocities and accelerations).
+        (K, K): 0 for parallel motion, 2 (1 with `printed_scale`) for opposite motion
+        (velocities and accelerations).
     """
     if keypoints.shape[-3] < 3:
         raise ValueError(
@@ -296,8 +299,9 @@ def trajectory_cost(keypoints: Array, intensity_weighted: bool = False) -> Array
     mu = keypoints[..., :3]
     vel = mu[..., 1:, :, :] - mu[..., :-1, :, :]
     acc = vel[..., 1:, :, :] - vel[..., :-1, :, :]
-    c_vel = (1.0 - _cosine(vel, vel)) / 4  # (..., T-1, K, K)
-    c_acc = (1.0 - _cosine(acc, acc)) / 4  # (..., T-2, K, K)
+    half = 4.0 if printed_scale else 2.0
+    c_vel = (1.0 - _cosine(vel, vel)) / half  # (..., T-1, K, K)
+    c_acc = (1.0 - _cosine(acc, acc)) / half  # (..., T-2, K, K)
     if intensity_weighted:
         alpha = keypoints[..., 3]
         w_vel = (alpha[..., 1:, :] + alpha[..., :-1, :]) / 2
@@ -308,20 +312,28 @@ def trajectory_cost(keypoints: Array, intensity_weighted: bool = False) -> Array
     return jnp.mean(c_vel.reshape(-1, k, k), axis=0) + jnp.mean(c_acc.reshape(-1, k, k), axis=0)
 
 
-def graph_trajectory(keypoints: Array, affinity: Array, intensity_weighted: bool = False) -> Array:
+def graph_trajectory(
+    keypoints: Array,
+    affinity: Array,
+    intensity_weighted: bool = False,
+    printed_scale: bool = False,
+) -> Array:
     """Eq. 13: affinity-weighted trajectory dissimilarity, mean over (k, k') of a_kk' C_kk'.
 
-    See `trajectory_cost` for C (averaged over batch and time first, as in the released code).
+    See `trajectory_cost` for C (averaged over batch and time first, as in the released code;
+    by default on the released [0, 2] scale).
 
     Args:
         keypoints: (..., T, K, 4), e.g. (B, T, K, 4), T >= 3.
         affinity: (N, K, K) or (K, K).
         intensity_weighted: weight by alpha_k (Eq. 13 as printed).
+        printed_scale: C on the printed Eq. 14's [0, 1] scale.
 
     Returns:
         scalar.
     """
-    return jnp.mean(_influence(affinity) * trajectory_cost(keypoints, intensity_weighted))
+    cost = trajectory_cost(keypoints, intensity_weighted, printed_scale)
+    return jnp.mean(_influence(affinity) * cost)
 
 
 # --- dynamics (Eqs. 3-4) -----------------------------------------------------------------------

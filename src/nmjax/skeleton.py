@@ -22,7 +22,10 @@ from nmjax import io
 
 NO_PATH = 1e4  # Algorithm 1: hop distance written for "no path" between two keypoints
 PRUNE_THRESHOLD = 0.2  # keypoints with mean intensity alpha below this are pruned (paper figures)
-DEFAULT_NEIGHBORS = 2  # N of Algorithm 1: maximum neighbours each keypoint links to
+DEFAULT_NEIGHBORS = 2  # N of Algorithm 1: the number of neighbours each keypoint links to
+# "algorithm1": the paper's Algorithm 1 (DESIGN §7), the default; "filtered": weak links dropped
+# and a hop-level ranking (see `extract_skeleton`).
+METHODS = ("algorithm1", "filtered")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,7 +35,8 @@ class Skeleton:
     Attributes:
       parents: (K,) parent of every keypoint; the root is its own parent.
       root: index of the root keypoint.
-      order: (K,) topological order (breadth first, children by index), root first.
+      order: (K,) topological order, root first, every parent before its children (Algorithm 1's
+        order by distance from the root along the tree, or breadth first, children by index).
       depth: number of edges on the longest root-to-leaf path.
     """
 
@@ -65,14 +69,17 @@ class Skeleton:
         io.write_json(path, payload)
 
 
-def skeleton_from_parents(parents: Any) -> Skeleton:
+def skeleton_from_parents(parents: Any, order: Any = None) -> Skeleton:
     """Builds a `Skeleton` from a parent array, checking that it is a single rooted tree.
 
     Args:
       parents: (K,) ints; exactly one entry is its own parent (the root).
+      order: optional (K,) topological order to keep (a permutation, root first, every parent
+        before its children); None orders breadth first, children by index.
 
     Raises:
-      ValueError: indices out of range, not exactly one root, or a cycle.
+      ValueError: indices out of range, not exactly one root, a cycle, or an `order` that is not
+        a topological order of the tree.
     """
     parents = np.asarray(parents)
     if parents.ndim != 1 or parents.size == 0 or not np.issubdtype(parents.dtype, np.integer):
@@ -91,14 +98,28 @@ def skeleton_from_parents(parents: Any) -> Skeleton:
     for k in range(num):
         if k != root:
             children[int(parents[k])].append(k)
-    order, depths = [root], {root: 0}
-    for k in order:  # breadth first; the list grows while it is walked
+    bfs, depths = [root], {root: 0}
+    for k in bfs:  # breadth first; the list grows while it is walked
         for c in children[k]:
             depths[c] = depths[k] + 1
-            order.append(c)
-    if len(order) != num:
-        cyclic = sorted(set(range(num)) - set(order))
+            bfs.append(c)
+    if len(bfs) != num:
+        cyclic = sorted(set(range(num)) - set(bfs))
         raise ValueError(f"parents {parents.tolist()} contain a cycle through {cyclic}")
+    if order is None:
+        order = bfs
+    else:
+        order = [int(k) for k in order]
+        position = {k: i for i, k in enumerate(order)}
+        if (
+            sorted(order) != list(range(num))
+            or order[0] != root
+            or any(position[int(parents[k])] > position[k] for k in range(num))
+        ):
+            raise ValueError(
+                f"order {order} is not a topological order of parents {parents.tolist()} (a "
+                "permutation starting at the root, every parent before its children)"
+            )
     return Skeleton(
         parents=tuple(int(p) for p in parents),
         root=root,
@@ -123,7 +144,9 @@ def load_skeleton(path: str | os.PathLike) -> Skeleton:
     if "parents" not in data:
         raise ValueError(f"{path} has no 'parents' field; re-run `nmjax extract-skeleton`")
     try:
-        skeleton = skeleton_from_parents(np.asarray(data["parents"], dtype=np.int64))
+        skeleton = skeleton_from_parents(
+            np.asarray(data["parents"], dtype=np.int64), data.get("order")
+        )
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from e
     if "root" in data and int(data["root"]) != skeleton.root:
@@ -155,18 +178,21 @@ def influence(affinity: Any) -> np.ndarray:
     return a
 
 
-def binarize_affinity(a: np.ndarray, n_neighbors: int) -> np.ndarray:
+def binarize_affinity(a: np.ndarray, n_neighbors: int, row_mean_filter: bool = False) -> np.ndarray:
     """BinarizeAffinity of Algorithm 1 (line 1): symmetric neighbourhood matrix A^bin.
 
-    Keypoint i links to at most `n_neighbors` keypoints: its strongest ones (ties by index) among
-    those whose affinity exceeds the mean of row i's off-diagonal entries (for softmaxed rows the
-    uniform level 1/(K-1)), so a leaf whose row puts all mass on one neighbour gets no spurious
-    second edge. The links are then symmetrised (an edge if either end chose it), which lets a
-    keypoint have more than N neighbours (a palm with five fingers).
+    Keypoint i links to its `n_neighbors` strongest keypoints (ties by index; never itself), and
+    the links are symmetrised (an edge if either end chose it), so a keypoint can have more than
+    N neighbours (a palm with five fingers). That is Algorithm 1 (DESIGN §7, step 2).
+
+    With `row_mean_filter` (the "filtered" method) a link is kept only when its affinity exceeds
+    the mean of row i's off-diagonal entries (for softmaxed rows the uniform level 1/(K-1)), so a
+    leaf whose row puts all its mass on one neighbour gets no second edge. Not in the paper.
 
     Args:
       a: (K, K) influence with a zero diagonal.
       n_neighbors: N >= 1.
+      row_mean_filter: drop links at or below the row mean.
 
     Returns:
       (K, K) bool, symmetric, zero diagonal.
@@ -175,20 +201,37 @@ def binarize_affinity(a: np.ndarray, n_neighbors: int) -> np.ndarray:
     bin_ = np.zeros((num, num), dtype=bool)
     if num == 1:
         return bin_
-    row_mean = a.sum(axis=1, keepdims=True) / (num - 1)
-    # Stable argsort of -a: strongest first, equal values by lower index.
-    ranked = np.argsort(-a, axis=1, kind="stable")[:, : min(n_neighbors, num - 1)]
+    masked = np.where(np.eye(num, dtype=bool), -np.inf, a)
+    # Stable argsort of -a: strongest first, equal values by lower index; the diagonal last.
+    ranked = np.argsort(-masked, axis=1, kind="stable")[:, : min(n_neighbors, num - 1)]
     rows = np.arange(num)[:, None]
-    chosen = a[rows, ranked] > row_mean
+    chosen = np.ones(ranked.shape, dtype=bool)
+    if row_mean_filter:
+        chosen = a[rows, ranked] > a.sum(axis=1, keepdims=True) / (num - 1)
     bin_[np.broadcast_to(rows, ranked.shape)[chosen], ranked[chosen]] = True
-    np.fill_diagonal(bin_, False)
     return bin_ | bin_.T
 
 
-def hop_distances(bin_: np.ndarray) -> np.ndarray:
-    """Dijkstra on the unweighted graph A^bin (Algorithm 1 line 2); NO_PATH where unreachable."""
-    dist = csgraph.dijkstra(bin_.astype(np.float64), directed=False, unweighted=True)
+def shortest_paths(lengths: np.ndarray) -> np.ndarray:
+    """All-pairs shortest path lengths of an undirected graph, NO_PATH where unreachable.
+
+    Floyd-Warshall in NumPy: the distances Dijkstra gives (Algorithm 1 names Dijkstra), at a
+    fraction of scipy.sparse.csgraph's per-call validation cost for graphs of a few dozen nodes.
+
+    Args:
+      lengths: (K, K) symmetric non-negative edge lengths, 0 where there is no edge.
+    """
+    dist = np.where(lengths > 0, lengths, np.inf)
+    np.fill_diagonal(dist, 0.0)
+    for m in range(len(dist)):
+        np.minimum(dist, dist[:, m : m + 1] + dist[m : m + 1, :], out=dist)
     return np.where(np.isfinite(dist), dist, NO_PATH)
+
+
+def hop_distances(bin_: np.ndarray) -> np.ndarray:
+    """Hop distances over the unweighted graph A^bin (Algorithm 1 line 2); NO_PATH where
+    unreachable."""
+    return shortest_paths(bin_.astype(np.float64))
 
 
 def _argmin_sum(dist: np.ndarray, candidates: np.ndarray) -> int:
@@ -213,14 +256,139 @@ def connect_components(bin_: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     dist = hop_distances(bin_)
     root = _argmin_sum(dist, everyone)
     while True:
-        _, labels = csgraph.connected_components(bin_, directed=False)
-        outside = np.flatnonzero(labels != labels[root])
+        outside = np.flatnonzero(dist[root] >= NO_PATH)  # the other components
         if outside.size == 0:
             return bin_, dist, root
         k = _argmin_sum(dist, outside)
         bin_[root, k] = bin_[k, root] = True
         dist = hop_distances(bin_)
         root = _argmin_sum(dist, everyone)
+
+
+# --- Algorithm 1 as published (DESIGN §7 steps 5-8), the default ------------------------------
+
+TIE_BREAK = 1e-5  # DESIGN §7 step 5: extra length of an edge that breaks a tie of summed distances
+RANK_TOL = 1e-9  # distances that differ by less are equal ranks (far below TIE_BREAK)
+
+
+def tie_break_lengths(a: np.ndarray, bin_: np.ndarray, hops: np.ndarray) -> np.ndarray:
+    """RefineGraph's edge lengths (DESIGN §7 step 5): every A^bin edge has length 1; for each pair
+    k < k' whose summed hop distances are equal and each node n adjacent to both, the edge
+    (n, l) grows by 1e-5, l being the one of k, k' that n has the smaller influence on
+    (l = k' if I[n, k] > I[n, k'] else k), so n's preferred keypoint ends up nearer.
+
+    Args:
+      a: (K, K) influence I; bin_: (K, K) connected A^bin; hops: (K, K) its hop distances.
+
+    Returns:
+      (K, K) symmetric edge lengths, 0 where there is no edge.
+    """
+    lengths = bin_.astype(np.float64)
+    sums = hops.sum(axis=1)
+    pairs = np.argwhere(np.triu(sums[:, None] == sums[None, :], k=1))  # (M, 2), k < k'
+    if len(pairs):
+        m, n = np.nonzero(bin_[pairs[:, 0]] & bin_[pairs[:, 1]])  # n adjacent to both of pair m
+        k, k2 = pairs[m, 0], pairs[m, 1]
+        far = np.where(a[n, k] > a[n, k2], k2, k)
+        np.add.at(lengths, (n, far), TIE_BREAK)
+        np.add.at(lengths, (far, n), TIE_BREAK)
+    return lengths
+
+
+def algorithm1_parents(a: np.ndarray, bin_: np.ndarray, rank: np.ndarray, root: int) -> np.ndarray:
+    """Lines 14-33 of Algorithm 1 as DESIGN §7 step 7 spells them.
+
+    For each k != root, scanning k's A^bin neighbours n in index order with the current choice p
+    and its rank gap g = rank[p] - rank[k] (start: none, g = -1e3):
+    - rank[n] < rank[k] and rank[n] - rank[k] > g: take n (the neighbour nearest in rank among
+      those nearer the root); equal gap: take n if I[k, n] > I[k, p];
+    - rank[n] == rank[k]: m = the neighbour of both n and k with rank[m] < rank[n] and the smallest
+      rank[m] (ties by index); take n (g = 0) if m exists and I[m, n] > I[m, k].
+    No choice: the parent is the root. Ranks closer than `RANK_TOL` are equal.
+
+    Same-rank choices can in principle close a cycle (k takes n, n takes q, q takes k, each by
+    another m); DESIGN requires a tree, so each such cycle is broken at its lowest index, which
+    gets its best strictly-nearer neighbour instead (the rule without the same-rank case).
+
+    Args:
+      a: (K, K) influence I; bin_: (K, K) connected A^bin; rank: (K,) weighted distance from
+        the root; root: the root.
+
+    Returns:
+      (K,) int parents; the root is its own parent.
+    """
+    num = len(rank)
+    r, inf = rank.tolist(), a.tolist()  # Python scalars: K is small, NumPy indexing is slower
+    rows, cols = np.nonzero(bin_)  # row-major: each row's neighbours in index order
+    neighbours: list[list[int]] = [[] for _ in range(num)]
+    for i, j in zip(rows.tolist(), cols.tolist(), strict=True):
+        neighbours[i].append(j)
+    adjacent = [set(n) for n in neighbours]
+    parents, nearer = list(range(num)), [root] * num
+    for k in range(num):
+        if k == root:
+            continue
+        p, gap, q, q_gap = -1, -1e3, -1, -1e3  # (p, gap): the rule; (q, q_gap): nearer only
+        for n in neighbours[k]:
+            diff = r[n] - r[k]
+            if diff < -RANK_TOL:
+                p, gap = _better(inf[k], n, diff, p, gap)
+                q, q_gap = _better(inf[k], n, diff, q, q_gap)
+            elif abs(diff) <= RANK_TOL:
+                shared = [m for m in neighbours[n] if m in adjacent[k] and r[m] < r[n] - RANK_TOL]
+                if shared:
+                    m = min(shared, key=lambda m: (r[m], m))
+                    if inf[m][n] > inf[m][k]:
+                        p, gap = n, 0.0
+        parents[k] = root if p < 0 else p
+        nearer[k] = root if q < 0 else q
+    parents = np.asarray(parents)
+    while (cycle := _find_cycle(parents, root)) is not None:
+        k = min(cycle)
+        parents[k] = nearer[k]
+    return parents
+
+
+def _better(row: list[float], n: int, diff: float, best: int, best_gap: float):
+    """(choice, gap) after neighbour n with rank gap `diff` < 0 (step 7's first rule); `row` is
+    I[k, :]."""
+    if diff > best_gap + RANK_TOL:
+        return n, diff
+    if abs(diff - best_gap) <= RANK_TOL and row[n] > row[best]:
+        return n, diff
+    return best, best_gap
+
+
+def _find_cycle(parents: np.ndarray, root: int) -> list[int] | None:
+    """The nodes of one cycle of the parent graph, or None when every node reaches the root."""
+    up = parents.tolist()
+    state = [0] * len(up)  # 0 unseen, 1 on the current walk, 2 reaches the root
+    state[root] = 2
+    for start in range(len(up)):
+        path, k = [], start
+        while state[k] == 0:
+            state[k] = 1
+            path.append(k)
+            k = up[k]
+        if state[k] == 1:
+            return path[path.index(k) :]
+        for j in path:
+            state[j] = 2
+    return None
+
+
+def tree_order(parents: np.ndarray, lengths: np.ndarray, root: int) -> np.ndarray:
+    """DESIGN §7 step 8: nodes sorted (stably) by their distance from the root along the tree,
+    each tree edge as long as in `lengths` (1 for an edge that A^bin lacks)."""
+    dist = np.full(len(parents), np.nan)
+    dist[root] = 0.0
+    for k in skeleton_from_parents(parents).order[1:]:  # parents first
+        edge = lengths[k, parents[k]]
+        dist[k] = dist[parents[k]] + (edge if edge > 0 else 1.0)
+    return np.argsort(dist, kind="stable")
+
+
+# --- the "filtered" method (a variant, not the paper's) ----------------------------------------
 
 
 def refine_graph(
@@ -285,28 +453,45 @@ def find_parents(
 
 
 def extract_skeleton(
-    affinity: Any, n_neighbors: int = DEFAULT_NEIGHBORS, intensities: Any = None
+    affinity: Any,
+    n_neighbors: int = DEFAULT_NEIGHBORS,
+    intensities: Any = None,
+    method: str = "algorithm1",
 ) -> Skeleton:
-    """Algorithm 1: the kinematic tree over all K keypoints from the learned affinity.
+    """The kinematic tree over all K keypoints from the learned affinity.
 
-    Steps: influence max_n A_n; `binarize_affinity` (top-N neighbours above the row mean,
-    symmetrised); `connect_components` (hop distances by Dijkstra, root = argmin of summed
-    distances, root-to-pseudo-root edges until connected); `refine_graph` (affinity-weighted
-    Dijkstra, ranks); `find_parents` (youngest higher-rank neighbour, same-rank rule).
-    Deterministic: every tie goes to the lower keypoint index.
+    method="algorithm1" (default): Algorithm 1 as published, step by step as DESIGN §7: influence
+    max_n A_n; `binarize_affinity` (each node's top-N links, no threshold, symmetrised);
+    `connect_components` (hop distances by Dijkstra, root = argmin of summed distances, root to
+    pseudo-root edges until connected); `tie_break_lengths` and weighted Dijkstra (RefineGraph);
+    root = argmin of the summed weighted distances, rank = weighted distance from the root;
+    `algorithm1_parents` (the neighbour nearest in rank among those nearer the root, same-rank
+    rule); `tree_order` (order by distance along the tree).
+
+    method="filtered" (a variant, not the paper's): links at or below the row mean are dropped
+    before symmetrising, nodes are ranked by (hop level, affinity-weighted distance
+    1 - log(s / max s), index) (`refine_graph`), and `find_parents` takes the youngest
+    higher-level neighbour; breadth-first order. Compared with Algorithm 1 on learned affinities
+    in experiments/results/alg1_methods.md.
+
+    Both are deterministic (ties go to the lower keypoint index) and return a valid tree.
 
     Args:
       affinity: (K, K) or (N, K, K) non-negative affinity (contract C10 `affinity.npy`).
-      n_neighbors: N, the maximum number of neighbours each keypoint links to.
+      n_neighbors: N, the number of neighbours each keypoint links to.
       intensities: optional (K,) mean keypoint intensities; only checked here (they drive
         `prune` and the skin weights, not the topology).
+      method: "algorithm1" or "filtered" (`METHODS`).
 
     Returns:
       A `Skeleton` over all K keypoints.
 
     Raises:
-      ValueError: malformed affinity, n_neighbors < 1 or intensities of the wrong length.
+      ValueError: malformed affinity, n_neighbors < 1, intensities of the wrong length or an
+        unknown method.
     """
+    if method not in METHODS:
+        raise ValueError(f"unknown skeleton method {method!r}; valid: {', '.join(METHODS)}")
     if int(n_neighbors) != n_neighbors or n_neighbors < 1:
         raise ValueError(f"n_neighbors must be a positive integer, got {n_neighbors!r}")
     a = influence(affinity)
@@ -315,10 +500,17 @@ def extract_skeleton(
             f"intensities must have shape ({a.shape[0]},) to match the affinity, got "
             f"{np.shape(intensities)}"
         )
-    bin_ = binarize_affinity(a, int(n_neighbors))
+    filtered = method == "filtered"
+    bin_ = binarize_affinity(a, int(n_neighbors), row_mean_filter=filtered)
     bin_, hops, root = connect_components(bin_)
-    _, level, rank = refine_graph(a, bin_, hops, root)
-    return skeleton_from_parents(find_parents(a, bin_, level, rank))
+    if filtered:
+        _, level, rank = refine_graph(a, bin_, hops, root)
+        return skeleton_from_parents(find_parents(a, bin_, level, rank))
+    lengths = tie_break_lengths(a, bin_, hops)
+    dist = shortest_paths(lengths)
+    root = int(np.argmin(dist.sum(axis=1)))
+    parents = algorithm1_parents(a, bin_, dist[root], root)
+    return skeleton_from_parents(parents, tree_order(parents, lengths, root))
 
 
 def prune(

@@ -1,9 +1,10 @@
 """`nmjax extract-skeleton --run RUN`: the phase-1 run's affinity -> `skeleton.json` + a picture.
 
 Reads `<run>/affinity.npy` (N, K, K) and `<run>/keypoint_stats.npz` (contract C10), runs
-Algorithm 1 (`nmjax.skeleton.extract_skeleton`) and writes `<run>/skeleton.json` (parents, root,
-order, depth, intensities, rest_positions, pruned parents) and `<run>/figures/skeleton.png` (the
-tree over the example frame's occupied voxels; pruned low-intensity keypoints faded).
+Algorithm 1 (`nmjax.skeleton.extract_skeleton`; `--method filtered` for the variant) and writes
+`<run>/skeleton.json` (parents, root, order, depth, method, intensities, rest_positions, pruned
+parents) and `<run>/figures/skeleton.png` (the tree over the example frame's occupied voxels;
+pruned low-intensity keypoints faded).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from nmjax import io
 from nmjax.data.voxelize import voxel_points
 from nmjax.skeleton import (
     DEFAULT_NEIGHBORS,
+    METHODS,
     PRUNE_THRESHOLD,
     Skeleton,
     extract_skeleton,
@@ -77,6 +79,7 @@ def extract_run_skeleton(
     run_dir: str | os.PathLike,
     n_neighbors: int | None = None,
     prune_threshold: float = PRUNE_THRESHOLD,
+    method: str = "algorithm1",
 ) -> Skeleton:
     """Extracts, saves and draws the skeleton of a phase-1 run (called at the end of train-skel).
 
@@ -85,6 +88,7 @@ def extract_run_skeleton(
       n_neighbors: N of Algorithm 1; None uses `DEFAULT_NEIGHBORS` (2).
       prune_threshold: keypoints with mean intensity below it are drawn faded and listed as
         pruned (`pruned_parents`, `keep`); the tree itself spans all K keypoints.
+      method: "algorithm1" (the paper's, default) or "filtered" (`extract_skeleton`).
 
     Returns:
       The `Skeleton` written to `<run_dir>/skeleton.json`.
@@ -92,13 +96,14 @@ def extract_run_skeleton(
     run_dir = Path(run_dir)
     n_neighbors = DEFAULT_NEIGHBORS if n_neighbors is None else n_neighbors
     affinity, stats = read_run(run_dir)
-    skeleton = extract_skeleton(affinity, n_neighbors, stats["intensities"])
+    skeleton = extract_skeleton(affinity, n_neighbors, stats["intensities"], method=method)
     pruned, keep = prune(skeleton, stats["intensities"], prune_threshold)
     skeleton.save(
         run_dir / "skeleton.json",
         intensities=stats["intensities"].astype(np.float64),
         rest_positions=stats["rest_positions"].astype(np.float64),
         n_neighbors=int(n_neighbors),
+        method=method,
         prune_threshold=float(prune_threshold),
         pruned_parents=list(pruned.parents),
         keep=keep.tolist(),
@@ -172,9 +177,15 @@ def main(argv: list[str]) -> int:
         metavar="ALPHA",
         help=f"keypoints with mean intensity below it are pruned (default {PRUNE_THRESHOLD})",
     )
+    parser.add_argument(
+        "--method",
+        choices=METHODS,
+        default="algorithm1",
+        help="algorithm1: the paper's Algorithm 1 (default); filtered: weak links dropped first",
+    )
     args = parser.parse_args(argv)
     start = time.perf_counter()
-    skeleton = extract_run_skeleton(args.run, args.neighbors, args.prune_threshold)
+    skeleton = extract_run_skeleton(args.run, args.neighbors, args.prune_threshold, args.method)
     seconds = time.perf_counter() - start
     print(
         f"{Path(args.run) / 'skeleton.json'}: K={skeleton.num_keypoints}, root {skeleton.root}, "

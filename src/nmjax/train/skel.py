@@ -254,9 +254,7 @@ def train(
     check_config(cfg)
     if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
         # Each host would read its own clock and could stop one step before the others.
-        raise ValueError(
-            "time_limit_minutes works in single-process runs only; set steps instead"
-        )
+        raise ValueError("time_limit_minutes works in single-process runs only; set steps instead")
     mesh = parallel.data_mesh()
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="

@@ -1,0 +1,153 @@
+"""Algorithm 1 against the "filtered" variant on learned affinities, and their speed.
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/alg1_methods.py \
+        --runs runs/study/synth-arm-base-s0 runs/study/synth-hand-base-s0 ...
+
+For every phase-1 run folder (its `affinity.npy`, `keypoint_stats.npz` and a detector checkpoint)
+both tree rules of `nmjax.skeleton.extract_skeleton` run on the learned affinity. Each keypoint
+is labelled with the ground-truth joint it is most often nearest to over the test crops of
+`nmjax evaluate`; an edge of a tree is *plausible* when the labels of its two keypoints are the
+same joint or joints one bone apart in the body's true tree (`meta.json` parents). Reported per
+run and method: plausible edges over all K - 1 edges, over the edges of the pruned tree (kept
+nodes, mean alpha >= 0.2, re-attached to their nearest kept ancestor), the parents that differ
+between the methods, and the median extraction time (with K = 28 random affinities as well).
+Writes experiments/results/alg1_methods.{md,json}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from scipy.sparse import csgraph
+
+from nmjax import io
+from nmjax.data.datasets import read_meta
+from nmjax.evaluate import Detector, phase1_outputs
+from nmjax.skeleton import METHODS, extract_skeleton, prune
+
+RESULTS = Path(__file__).parent / "results"
+
+
+def joint_labels(detector: Detector, max_crops: int) -> np.ndarray:
+    """(K,) the ground-truth joint each keypoint is most often nearest to on the test crops."""
+    votes = None
+    for _, _, joints, keypoints, _ in phase1_outputs(detector, max_crops):
+        kp = keypoints.reshape(-1, *keypoints.shape[-2:])[..., :3]  # (F, K, 3)
+        gt = joints.reshape(-1, *joints.shape[-2:])  # (F, J, 3)
+        nearest = np.linalg.norm(kp[:, :, None] - gt[:, None], axis=-1).argmin(-1)  # (F, K)
+        counts = np.stack([np.bincount(col, minlength=gt.shape[1]) for col in nearest.T])
+        votes = counts if votes is None else votes + counts
+    return votes.argmax(axis=1)
+
+
+def bone_hops(parents: list[int]) -> np.ndarray:
+    """(J, J) hop distances in the ground-truth tree."""
+    num = len(parents)
+    adj = np.zeros((num, num))
+    for k, p in enumerate(parents):
+        if k != p and p >= 0:
+            adj[k, p] = adj[p, k] = 1.0
+    return csgraph.shortest_path(adj, directed=False, unweighted=True)
+
+
+def plausible(edges: list[tuple[int, int]], labels: np.ndarray, hops: np.ndarray) -> float:
+    if not edges:
+        return float("nan")
+    return float(np.mean([hops[labels[a], labels[b]] <= 1 for a, b in edges]))
+
+
+def median_ms(affinity: np.ndarray, method: str, repeats: int = 200) -> float:
+    extract_skeleton(affinity, method=method)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        extract_skeleton(affinity, method=method)
+        times.append(time.perf_counter() - start)
+    return float(np.median(times) * 1e3)
+
+
+def evaluate_run(run: Path, max_crops: int) -> dict:
+    affinity = np.load(run / "affinity.npy")
+    with np.load(run / "keypoint_stats.npz") as stats:
+        intensities = np.asarray(stats["intensities"])
+    detector = Detector.load(run)
+    meta = read_meta(detector.cfg.data.name, detector.cfg.data.root)
+    labels = joint_labels(detector, max_crops)
+    hops = bone_hops(meta["parents"])
+    out = {"run": str(run), "data": detector.cfg.data.name, "K": int(affinity.shape[-1])}
+    trees = {}
+    for method in METHODS:
+        skeleton = extract_skeleton(affinity, method=method)
+        pruned, keep = prune(skeleton, intensities)
+        kept_edges = [(p, k) for p, k in pruned.edges() if keep[k]]
+        trees[method] = skeleton.parents
+        out[method] = {
+            "parents": list(skeleton.parents),
+            "root": skeleton.root,
+            "depth": skeleton.depth,
+            "plausible_all": plausible(skeleton.edges(), labels, hops),
+            "plausible_pruned": plausible(kept_edges, labels, hops),
+            "pruned_edges": len(kept_edges),
+            "ms": median_ms(affinity, method),
+        }
+    out["parents_differ"] = int(np.sum(np.array(trees["algorithm1"]) != trees["filtered"]))
+    out["labels"] = labels.tolist()
+    return out
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", nargs="+", required=True, type=Path)
+    parser.add_argument("--max-crops", type=int, default=8)
+    args = parser.parse_args()
+    rows = [evaluate_run(run, args.max_crops) for run in args.runs]
+    rng = np.random.default_rng(0)
+    random28 = {
+        m: float(np.median([median_ms(rng.random((2, 28, 28)), m, 50) for _ in range(5)]))
+        for m in METHODS
+    }
+    command = "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv)
+    io.write_json(
+        RESULTS / "alg1_methods.json", {"command": command, "runs": rows, "random28_ms": random28}
+    )
+    lines = [
+        "# Algorithm 1 against the filtered variant on learned affinities",
+        "",
+        f"Command: `{command}`",
+        "",
+        "Plausible edge: its two keypoints are labelled (most often nearest, test crops) with the",
+        "same ground-truth joint or joints one bone apart. all: every edge of the tree over K",
+        "keypoints; pruned: edges between kept nodes (mean alpha >= 0.2). ms: median extraction",
+        "time on this machine.",
+        "",
+        "| run | K | method | root | depth | plausible (all) | plausible (pruned, edges) | ms |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        for method in METHODS:
+            m = r[method]
+            lines.append(
+                f"| {r['run']} | {r['K']} | {method} | {m['root']} | {m['depth']} | "
+                f"{m['plausible_all']:.2f} | {m['plausible_pruned']:.2f} ({m['pruned_edges']}) "
+                f"| {m['ms']:.2f} |"
+            )
+    lines += ["", "Parents that differ between the two methods:", ""]
+    lines += [f"- {r['run']}: {r['parents_differ']} of {r['K']}" for r in rows]
+    lines += [
+        "",
+        "K = 28, random affinities (2, 28, 28), median over 5 x 50 calls: "
+        + ", ".join(f"{m} {v:.3f} ms" for m, v in random28.items()),
+        "",
+    ]
+    io.write_text(RESULTS / "alg1_methods.md", "\n".join(lines))
+    print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -725,6 +725,7 @@ def plot_generation(path: Path, gen: dict, title: str = "") -> None:
 
     measures = ("diversity", "set_diversity", "bone_error", "set_distance")
     labels = ("diversity (APD per clip)", "set diversity", "bone-length error", "set distance")
+    horizons = [int(h) for h in next(iter(gen["methods"].values()))]
     fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
     for ax, measure, label in zip(axes, measures, labels, strict=True):
         series = dict(gen["methods"])
@@ -737,9 +738,12 @@ def plot_generation(path: Path, gen: dict, title: str = "") -> None:
             style = "--" if method == REFERENCE else "-"
             ax.errorbar(n, means, yerr=ci, fmt=style, marker="o", ms=3, capsize=3, label=method)
         ax.set_xscale("log")
+        ax.set_xticks(horizons, [str(h) for h in horizons])
+        ax.minorticks_off()
+        ax.set_xlim(min(horizons) / 1.4, max(horizons) * 1.4)
         ax.set_xlabel("horizon N (generated frames)")
         ax.set_title(label, fontsize=9)
-    axes[0].legend(fontsize=7)
+    axes[1].legend(fontsize=7)  # the panel with every method and the reference
     save_figure(fig, path, title=title or None)
 
 

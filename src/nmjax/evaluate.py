@@ -943,9 +943,8 @@ def generation_markdown(results: dict) -> str:
         f"distances (Euclidean, xyz, normalised units) over the {st['kept_nodes']} nodes of the "
         "pruned skeleton. Hold last pose repeats the last conditioning frame: diversity and "
         "bone-length error 0 by construction (up to float round-off). Ours keeps every bone of "
-        "its full tree exactly "
-        "(forward kinematics with the lengths of the conditioning frames); a bone of the pruned "
-        "tree that skips a pruned joint can still change length.",
+        "its full tree exactly (forward kinematics with the lengths of the conditioning "
+        "frames); a bone of the pruned tree that skips a pruned joint can still change length.",
         "",
     ]
     return "\n".join(head + generation_tables(results))

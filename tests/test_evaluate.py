@@ -184,3 +184,106 @@ def test_ground_truth_supervised_variant_replaces_only_the_volume_term():
     without = {key: v for key, v in outputs.items() if key != "joints"}
     with pytest.raises(ValueError, match="ground-truth joints"):
         losses.skeleton_loss(without, gt)
+
+
+# --- generation ---------------------------------------------------------------------------------
+
+
+def rigid_motion(frames: int, k: int = K, seed: int = 0) -> np.ndarray:
+    """(frames, K, 4) keypoints of one rest pose rotated about z and translated frame by frame."""
+    rng = np.random.default_rng(seed)
+    rest = rng.normal(size=(k, 3))
+    angle = np.linspace(0.0, 2.0, frames)
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.stack(
+        [
+            np.stack([c, -s, 0 * c], -1),
+            np.stack([s, c, 0 * c], -1),
+            np.tile([0, 0, 1.0], (frames, 1)),
+        ],
+        axis=-2,
+    )  # (frames, 3, 3)
+    mu = np.einsum("tij,kj->tki", rot, rest) + np.linspace(0, 1, frames)[:, None, None]
+    return np.concatenate([mu, np.full((frames, k, 1), 0.7)], axis=-1).astype(np.float32)
+
+
+def test_conditioning_and_real_clips_fit_inside_the_sequences():
+    traj = {"a": rigid_motion(12), "b": rigid_motion(30, seed=1)}
+    names, x_cond = evaluate.conditioning_clips(traj, cond=5, per_sequence=3)
+    assert names == [("a", 0), ("a", 3), ("a", 7), ("b", 0), ("b", 12), ("b", 25)]
+    assert x_cond.shape == (6, 5, K, 4)
+    np.testing.assert_array_equal(x_cond[2], traj["a"][7:12])
+    real = evaluate.real_clips(traj, frames=20, stride=5, per_sequence=16)
+    assert real.shape == (3, 20, K, 4)  # only "b" is long enough: starts 0, 5, 10
+    np.testing.assert_array_equal(real[2], traj["b"][10:30])
+    assert evaluate.real_clips(traj, frames=31, stride=5, per_sequence=16).shape == (0, 31, K, 4)
+    with pytest.raises(ValueError, match="lower --cond"):
+        evaluate.conditioning_clips(traj, cond=40, per_sequence=3)
+
+
+def test_generation_measures_of_rigid_held_and_stretched_motion():
+    parents, kept = np.array(PARENTS), np.ones(K, bool)
+    x_cond = rigid_motion(8)[None, :5]  # (B=1, 5, K, 4)
+    real = rigid_motion(8)[None]
+    # Held pose: its samples are identical and no bone changes length.
+    held = evaluate.hold_last_pose(x_cond, 8, samples=3)
+    assert held.shape == (1, 3, 8, K, 4)
+    out = evaluate.generation_measures(held, real, parents, kept, root=0)
+    assert out["diversity"]["mean"] == 0.0 and out["bone_error"]["mean"] < 1e-6
+    assert out["set_distance"]["mean"] > 0.0  # the real clip moves, the held one does not
+    # A rigid motion in every sample: bone-length error 0; the real clip itself: set distance 0.
+    same = np.broadcast_to(real[:, None], (1, 2, 8, K, 4))
+    out = evaluate.generation_measures(same, real, parents, kept, root=0)
+    assert out["bone_error"]["mean"] == pytest.approx(0.0, abs=1e-5)
+    assert out["set_distance"]["mean"] == pytest.approx(0.0, abs=1e-6)
+    assert out["set_distance"]["to_real"]["n"] == 1
+    # Bones that stretch over time do not score 0, and the faint intensities of a model do not
+    # change which bones count: the run's node mask does.
+    stretched = same.copy()
+    stretched[..., :3] *= np.linspace(1.0, 2.0, 8)[:, None, None]
+    stretched[..., 3] = 0.0
+    out = evaluate.generation_measures(stretched, real[:0], parents, kept, root=0, no_real="x")
+    assert out["bone_error"]["mean"] > 0.05
+    assert np.isnan(out["set_distance"]["mean"]) and out["set_distance"]["reason"] == "x"
+
+
+def test_generation_command_writes_its_table_and_plot(runs, tmp_path):
+    from nmjax import cli
+
+    out = tmp_path / "eval"
+    argv = ["evaluate", "--run", str(runs["nm"]), "--vrnn-run", str(runs["vrnn"]), "--generation"]
+    argv += ["--horizons", "3,20", "--samples", "2", "--cond", "2", "--clips", "2"]
+    assert cli.main([*argv, "--out", str(out)]) == 0
+    results = json.loads((out / "generation.json").read_text())
+    assert set(results["methods"]) == {"Ours", "VRNN", "Hold last pose"}
+    assert len(results["clips"]) == 2  # one 12-frame test sequence, two conditioning clips
+    ours, vrnn, hold = (results["methods"][m] for m in ("Ours", "VRNN", "Hold last pose"))
+    assert ours["3"]["bone_error"]["mean"] < 1e-5  # forward kinematics keeps every bone
+    assert vrnn["3"]["bone_error"]["mean"] > 1e-3  # the untrained positional decoder does not
+    assert hold["3"]["diversity"]["mean"] == 0.0 and ours["3"]["diversity"]["mean"] > 0.0
+    assert ours["3"]["diversity"]["n"] == 2 and np.isfinite(ours["3"]["set_distance"]["mean"])
+    # No 20-frame test clip exists: the set distance is n/a with the reason, the rest measured.
+    assert "12" in ours["20"]["set_distance"]["reason"] and ours["20"]["set_distance"]["n"] == 0
+    assert np.isfinite(ours["20"]["set_diversity"]["mean"])
+    table = (out / "generation.md").read_text()
+    for text in ("| Ours |", "| VRNN |", "| Hold last pose |", "N = 20", "no test sequence has 20"):
+        assert text in table
+    assert (out / "generation.png").read_bytes()[:4] == b"\x89PNG"
+    assert not (out / "results.json").exists()  # the other tables are not recomputed
+
+
+def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs, tmp_path, capsys):
+    from nmjax import cli
+
+    other = tmp_path / "dyn-vrnn-other"
+    other.mkdir()
+    config = json.loads((runs["vrnn"] / "config.json").read_text())
+    config["skel_run"] = str(tmp_path / "skel-other")
+    (other / "config.json").write_text(json.dumps(config))
+    argv = ["evaluate", "--run", str(runs["nm"]), "--generation"]
+    assert cli.main([*argv, "--vrnn-run", str(other)]) == 1
+    assert "skel-other" in capsys.readouterr().err
+    assert cli.main([*argv, "--horizons", "1,5"]) == 1
+    assert "--horizons must be comma-separated integers >= 2" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--run", str(runs["skel"]), "--generation"]) == 1
+    assert "phase-2" in capsys.readouterr().err

@@ -196,3 +196,99 @@ def test_motion_chamfer():
     assert metrics.motion_chamfer(v, static) == pytest.approx(2 * 12.0)
     with pytest.raises(ValueError, match="2 frames"):
         metrics.motion_chamfer(v[:1], v[:1])
+
+
+# --- generated motion ---------------------------------------------------------------------------
+
+
+def clips_at(offsets: np.ndarray, t: int = 4, k: int = 3) -> np.ndarray:
+    """(len(offsets), t, k, 4) clips of one random body, each shifted along x by its offset;
+    random intensities (the measures ignore alpha)."""
+    rng = np.random.default_rng(0)
+    body = rng.normal(size=(t, k, 3))
+    clips = body[None] + np.asarray(offsets, np.float64)[:, None, None, None] * np.eye(3)[0]
+    alpha = rng.uniform(size=(len(offsets), t, k, 1))
+    return np.concatenate([clips, alpha], axis=-1).astype(np.float32)
+
+
+def test_keypoint_distance_is_the_mean_euclidean_xyz_distance():
+    a = np.zeros((2, 2, 4), np.float32)  # (T, K, 4)
+    b = a.copy()
+    b[:, 0, :3] = (3.0, 4.0, 0.0)  # keypoint 0 is 5 away in every frame, keypoint 1 0
+    b[..., 3] = 1.0  # alpha differs and does not count
+    assert float(metrics.keypoint_distance(a, b)) == pytest.approx(2.5)
+    assert float(metrics.keypoint_distance(a, b, np.array([True, False]))) == pytest.approx(5.0)
+    assert float(metrics.keypoint_distance(a, a)) == 0.0
+    with pytest.raises(ValueError, match=r"mask has shape \(3,\).*K=2"):
+        metrics.keypoint_distance(a, b, np.ones(3, bool))
+
+
+def test_diversity_hand_cases():
+    # Three samples shifted by 0, 1 and 3 along x: pairwise distances 1, 3, 2; mean 2.
+    samples = clips_at([0.0, 1.0, 3.0])
+    assert float(metrics.diversity(samples)) == pytest.approx(2.0, rel=1e-5)
+    # Identical samples: exactly 0, with a finite gradient.
+    same = clips_at([0.5, 0.5, 0.5])
+    assert float(metrics.diversity(same)) == 0.0
+    grad = jax.grad(lambda x: metrics.diversity(x))(jnp.asarray(same))
+    assert np.all(np.isfinite(np.asarray(grad)))
+    # One value per conditioning clip, under jit.
+    batch = np.stack([samples, same, clips_at([0.0, 2.0, 2.0])])  # (B=3, S=3, T, K, 4)
+    out = jax.jit(metrics.diversity)(batch)
+    assert out.shape == (3,)
+    np.testing.assert_allclose(out, [2.0, 0.0, 4.0 / 3.0], rtol=1e-5)
+    with pytest.raises(ValueError, match="S >= 2"):
+        metrics.diversity(samples[:1])
+    with pytest.raises(ValueError, match="S >= 2"):
+        metrics.diversity(samples[0])  # (T, K, 4): not a set of samples
+
+
+def test_set_diversity_splits_the_diversity_of_the_whole_set_by_clip():
+    clips = np.stack([clips_at([0.0, 1.0]), clips_at([3.0, 7.0]), clips_at([2.0, 2.0])])
+    per_clip = np.asarray(metrics.set_diversity(clips))
+    assert per_clip.shape == (3,)
+    whole = float(metrics.diversity(clips.reshape(6, *clips.shape[2:])))
+    assert float(np.mean(per_clip)) == pytest.approx(whole, rel=1e-5)
+    # Clip 0's samples at x = 0, 1 are 1, 3, 7, 2, 2 and 1, 2, 6, 1, 1 away from the others.
+    assert per_clip[0] == pytest.approx((15 + 11) / 10, rel=1e-5)
+    # Every clip the same pose: no spread.
+    assert np.all(np.asarray(metrics.set_diversity(np.stack([clips_at([1.0, 1.0])] * 2))) == 0)
+    with pytest.raises(ValueError, match=r"\(B, S, T, K, C\)"):
+        metrics.set_diversity(clips[0])
+
+
+def test_set_distance_hand_cases():
+    rng = np.random.default_rng(1)
+    real = rng.normal(size=(5, 6, 4, 4)).astype(np.float32)  # (M, T, K, 4)
+    root = 2
+    # The same set, in another order and with every clip's root translated frame by frame:
+    # the root translation is removed, so the distance is 0.
+    moved = real[::-1].copy()
+    moved[..., :3] += rng.normal(size=(5, 6, 1, 3)).astype(np.float32)
+    assert float(metrics.set_distance(moved, real, root)) == pytest.approx(0.0, abs=1e-6)
+    assert float(metrics.set_distance(moved, real, None)) > 0.1  # absolute positions differ
+    # Generated {A, A'} with A' = A moved 0.5 along x on every keypoint but the root (3 of 4
+    # keypoints): A' is 0.375 from its nearest real clip A, A is 0 from itself.
+    a = real[:1]
+    a_far = a.copy()
+    a_far[:, :, [0, 1, 3], 0] += 0.5
+    to_real, to_generated = metrics.nearest_clip_distances(np.concatenate([a, a_far]), a, root)
+    np.testing.assert_allclose(to_real, [0.0, 0.375], atol=1e-6)
+    np.testing.assert_allclose(to_generated, [0.0], atol=1e-6)
+    assert float(metrics.set_distance(np.concatenate([a, a_far]), a, root)) == pytest.approx(
+        0.1875, abs=1e-6
+    )
+    # Coverage: a generated set of one real clip is far from the four others.
+    assert float(metrics.set_distance(real[:1], real, root)) > 0.5
+    jitted = jax.jit(metrics.set_distance, static_argnames="root")
+    assert float(jitted(real, real, root=root)) == 0.0
+    # Shapes of the pairwise matrix, and bad inputs.
+    d = metrics.clip_distances(real[:2], real)
+    assert d.shape == (2, 5)
+    assert float(d[1, 3]) == pytest.approx(float(metrics.keypoint_distance(real[1], real[3])))
+    with pytest.raises(ValueError, match="same number of frames"):
+        metrics.set_distance(real[:, :5], real, root)
+    with pytest.raises(ValueError, match="empty"):
+        metrics.set_distance(real[:0], real, root)
+    with pytest.raises(ValueError, match=r"\(N, T, K, C\)"):
+        metrics.set_distance(real[0], real, root)

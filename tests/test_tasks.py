@@ -307,14 +307,17 @@ def test_generate_command(runs, tmp_path):
     from nmjax import cli
 
     out = tmp_path / "gen"
-    argv = ["generate", "--run", str(runs["nm"]), "--cond", "2", "--gen", "3", "--samples", "2"]
+    # 2 + 11 frames: longer than the 12-frame test sequence, whose last frame is then held.
+    argv = ["generate", "--run", str(runs["nm"]), "--cond", "2", "--gen", "11", "--samples", "2"]
     assert cli.main([*argv, "--inputs", "1", "--voxels", "--out", str(out)]) == 0
     with np.load(out / "generate.npz") as z:
-        assert z["keypoints"].shape == (1, 2, 5, K, 4)
-        assert z["observed"].shape == (1, 5, K, 4)
+        assert z["keypoints"].shape == (1, 2, 13, K, 4)
+        assert np.all(np.isfinite(z["keypoints"]))
+        assert z["observed"].shape == (1, 13, K, 4) and list(z["observed_frames"]) == [12]
+        np.testing.assert_array_equal(z["observed"][0, 12], z["observed"][0, 11])
         name = str(z["names"][0])
     with np.load(out / "voxels.npz") as z:
-        assert z["voxels"].shape == (1, 2, 5, 16, 16, 16)
+        assert z["voxels"].shape == (1, 2, 13, 16, 16, 16)
     assert (out / f"{name}.gif").stat().st_size > 0 and (out / f"{name}.png").is_file()
 
 

@@ -20,7 +20,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "interpolate between two keyframes, with baselines",
     ),
     "retarget": ("nmjax.commands.retarget", "retarget a test motion onto a mesh (Eqs. 24-25, LBS)"),
-    "evaluate": ("nmjax.evaluate", "SC-score, 4D-tracking Chamfer, interpolation M-CD"),
+    "evaluate": (
+        "nmjax.evaluate",
+        "SC-score, 4D-tracking Chamfer, interpolation M-CD; --generation: generation measures",
+    ),
     "bench": ("nmjax.bench", "steps/s, load vs compute, compile time, memory of the train steps"),
 }
 

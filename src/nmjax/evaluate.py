@@ -20,6 +20,16 @@
   its scale); mean and 95% confidence interval over test sequences.
 
 Writes `<out>/results.json`, `<out>/tables.md` and `<out>/mcd.png` (default out: `<run>/eval`).
+
+    nmjax evaluate --run RUN [--vrnn-run RUN2] --generation [--horizons 25,100,300] [--samples 10]
+
+evaluates generation instead (beyond the paper, which shows it only as pictures): on conditioning
+clips of T_cond test frames, S futures per clip from Ours, VRNN and the hold-last-pose baseline,
+at each horizon N (generated frames) the diversity (average pairwise distance of the S samples,
+and of the generated set as a whole), the bone-length error of the generated frames
+(`metrics.bone_length_variation` on the pruned skeleton) and the set distance to the real test
+clips of N frames (`metrics.set_distance`), with 95% confidence intervals over clips. Writes
+`<out>/generation.json`, `generation.md` and `generation.png` (each measure against N).
 """
 
 from __future__ import annotations
@@ -414,6 +424,329 @@ def summarize_per_rate(per_sequence: dict[str, dict[int, dict[str, float]]]) -> 
     }
 
 
+# --- generation: diversity, bone-length error, set distance to real motion --------------------
+
+GEN_HORIZONS = (25, 100, 300)
+GEN_METHODS = ("Ours", "VRNN", "Hold last pose")
+REFERENCE = "Test clips (reference)"
+# measure -> (section title, what its confidence interval is over)
+GEN_MEASURES = {
+    "diversity": (
+        "Diversity: APD of the S samples of one conditioning clip",
+        "95% CI over conditioning clips",
+    ),
+    "set_diversity": (
+        "Diversity of the generated set as a whole (mean distance to every other generated clip)",
+        "95% CI over conditioning clips; reference: the real test clips of the same length",
+    ),
+    "bone_error": (
+        "Bone-length error of the generated frames (`bone_length_variation`, pruned skeleton)",
+        "95% CI over conditioning clips; reference: the real test clips of the same length",
+    ),
+    "set_distance": (
+        "Set distance to real test clips (bidirectional Chamfer, root translation removed)",
+        "CI of the two terms below combined in quadrature",
+    ),
+    "to_real": (
+        "Set distance, first term: generated clip -> nearest real clip (do samples look real?)",
+        "95% CI over conditioning clips",
+    ),
+    "to_generated": (
+        "Set distance, second term: real clip -> nearest generated clip (is the data covered?)",
+        "95% CI over real clips",
+    ),
+}
+
+
+def conditioning_clips(
+    trajectories: dict[str, np.ndarray], cond: int, per_sequence: int
+) -> tuple[list[tuple[str, int]], np.ndarray]:
+    """Conditioning clips of `cond` frames, `per_sequence` starts spread over every sequence.
+
+    Returns:
+      [(sequence, start frame)] and x_cond (B, cond, K, 4).
+    """
+    clips, frames = [], []
+    for name in sorted(trajectories):
+        x = trajectories[name]
+        if len(x) < cond:
+            continue
+        starts = np.unique(np.linspace(0, len(x) - cond, per_sequence).astype(int))
+        clips += [(name, int(t)) for t in starts]
+        frames += [x[t : t + cond] for t in starts]
+    if not frames:
+        longest = max(len(x) for x in trajectories.values())
+        raise ValueError(
+            f"no test sequence has {cond} frames to condition on (longest: {longest}); lower --cond"
+        )
+    return clips, np.stack(frames).astype(np.float32)
+
+
+def real_clips(
+    trajectories: dict[str, np.ndarray], frames: int, stride: int, per_sequence: int
+) -> np.ndarray:
+    """Real clips of `frames` frames: windows starting every `stride` frames of every sequence
+    that is at least that long, at most `per_sequence` (spread) per sequence.
+
+    Returns:
+      (M, frames, K, 4); M = 0 when no sequence has `frames` frames.
+    """
+    windows = []
+    for name in sorted(trajectories):
+        x = trajectories[name]
+        starts = np.arange(0, len(x) - frames + 1, stride)
+        if len(starts) > per_sequence:
+            starts = starts[np.linspace(0, len(starts) - 1, per_sequence).astype(int)]
+        windows += [x[t : t + frames] for t in starts]
+    k = next(iter(trajectories.values())).shape[1]
+    return np.stack(windows) if windows else np.zeros((0, frames, k, 4), np.float32)
+
+
+def hold_last_pose(x_cond: np.ndarray, frames: int, samples: int) -> np.ndarray:
+    """The hold-last-pose baseline: the last conditioning frame repeated, (B, S, frames, K, 4).
+
+    Its S samples are identical (diversity 0) and nothing moves (bone-length error 0).
+    """
+    b, _, k, c = x_cond.shape
+    return np.broadcast_to(x_cond[:, None, -1:], (b, samples, frames, k, c))
+
+
+def generated_futures(
+    model: tuple[Any, Any], x_cond: np.ndarray, frames: int, samples: int, key: jax.Array
+) -> np.ndarray:
+    """The `frames` generated frames after x_cond (B, T_cond, K, 4): (B, S, frames, K, 4)."""
+    keypoints, _ = tasks.generate_jit(
+        *model, jnp.asarray(x_cond), key, num_frames=frames, num_samples=samples
+    )
+    return np.asarray(keypoints)[:, :, x_cond.shape[1] :]
+
+
+def _with_node_intensity(clips: np.ndarray, kept: np.ndarray) -> jax.Array:
+    """The clips with alpha set to 1 on the kept nodes and 0 elsewhere, so that
+    `bone_length_variation` (alpha_min 0.5) measures the bones of the run's pruned skeleton
+    whatever intensities the model generates."""
+    alpha = np.broadcast_to(kept.astype(np.float32), clips.shape[:-1])[..., None]
+    return jnp.concatenate([jnp.asarray(clips[..., :3]), jnp.asarray(alpha)], axis=-1)
+
+
+@jax.jit
+def _bone_error(clips, parents):  # (B, S, N, K, 4) -> (B,), one value per conditioning clip
+    return jax.vmap(lambda x: metrics.bone_length_variation(x, parents, alpha_min=0.5))(clips)
+
+
+_diversity = jax.jit(metrics.diversity)
+_set_diversity = jax.jit(metrics.set_diversity)
+_nearest_clips = jax.jit(metrics.nearest_clip_distances, static_argnames="root")
+
+
+def _floats(values) -> list[float]:
+    return [float(v) for v in np.asarray(values).ravel()]
+
+
+def generation_measures(
+    futures: np.ndarray,
+    real: np.ndarray,
+    parents: np.ndarray,
+    kept: np.ndarray,
+    root: int,
+    no_real: str = "no real clip",
+) -> dict[str, dict]:
+    """The measures of one method at one horizon.
+
+    Args:
+      futures: (B, S, N, K, 4) generated frames, S samples for each of B conditioning clips.
+      real: (M, N, K, 4) real test clips of the same length (M may be 0).
+      parents: (K,) the pruned skeleton (`pruned_skeleton`); kept: (K,) its nodes, the
+        keypoints every distance averages over.
+      root: the skeleton's root keypoint (its trajectory is removed for the set distance).
+      no_real: the reason recorded when `real` is empty.
+
+    Returns:
+      {"diversity" (absent for S = 1), "set_diversity", "bone_error": summaries over the B
+      clips; "set_distance": {"mean", "ci95", "n", "to_real", "to_generated"} or, with no real
+      clip, {"mean": nan, "ci95": nan, "n": 0, "reason"}}.
+    """
+    b, s = futures.shape[:2]
+    mask = jnp.asarray(kept)
+    out: dict[str, dict] = {}
+    if s >= 2:
+        out["diversity"] = summarize(_floats(_diversity(jnp.asarray(futures), mask)))
+    out["set_diversity"] = summarize(_floats(_set_diversity(jnp.asarray(futures), mask)))
+    bones = _bone_error(_with_node_intensity(futures, kept), jnp.asarray(parents))
+    out["bone_error"] = summarize(_floats(bones))
+    if len(real) == 0:
+        out["set_distance"] = {
+            "mean": float("nan"),
+            "ci95": float("nan"),
+            "n": 0,
+            "reason": no_real,
+        }
+        return out
+    flat = jnp.asarray(futures.reshape(b * s, *futures.shape[2:]))
+    to_real, to_generated = _nearest_clips(flat, jnp.asarray(real), root=root, mask=mask)
+    per_clip = np.asarray(to_real).reshape(b, s).mean(axis=1)  # its mean is the Chamfer term
+    tr, tg = summarize(_floats(per_clip)), summarize(_floats(to_generated))
+    out["set_distance"] = {
+        "mean": tr["mean"] + tg["mean"],
+        # The two terms are means over different clips; their CIs are combined as if
+        # independent.
+        "ci95": math.hypot(tr["ci95"], tg["ci95"]),
+        "n": tr["n"],
+        "to_real": tr,
+        "to_generated": tg,
+    }
+    return out
+
+
+def real_reference(real: np.ndarray, parents: np.ndarray, kept: np.ndarray) -> dict:
+    """Bone-length error and set diversity of the real clips (M, N, K, 4), for comparison."""
+    if len(real) < 2:
+        return {"clips": int(len(real))}
+    clips = real[:, None]  # every real clip its own group of one sample
+    mask = jnp.asarray(kept)
+    return {
+        "clips": int(len(real)),
+        "set_diversity": summarize(_floats(_set_diversity(jnp.asarray(clips), mask))),
+        "bone_error": summarize(
+            _floats(_bone_error(_with_node_intensity(clips, kept), jnp.asarray(parents)))
+        ),
+    }
+
+
+def evaluate_generation(
+    models: dict[str, tuple[Any, Any]],
+    trajectories: dict[str, np.ndarray],
+    parents: np.ndarray,
+    kept: np.ndarray,
+    *,
+    horizons: tuple[int, ...] = GEN_HORIZONS,
+    cond: int = 5,
+    samples: int = 10,
+    clips: int = 4,
+    stride: int = 5,
+    real_per_sequence: int = 16,
+    seed: int = 0,
+) -> dict:
+    """Diversity, bone-length error and set distance to real motion of generated motion at
+    several horizons, for each model and the hold-last-pose baseline.
+
+    Every method continues the same conditioning clips (`clips` per test sequence, `cond`
+    frames each); the models draw `samples` futures of max(horizons) frames per clip once, and
+    horizon N measures their first N generated frames (the `cond` posterior frames excluded).
+    Real clips of N frames are cut from the test sequences of at least N frames
+    (`real_clips`); at a horizon no test sequence reaches the set distance is n/a, with the
+    reason. All distances average over the kept nodes of the pruned skeleton.
+
+    Args:
+      models: {method: (graphdef, state)} of phase-2 models, e.g. {"Ours": ..., "VRNN": ...}.
+      trajectories: {sequence: (T_seq, K, 4)} test keypoints (keypoints_test.npz).
+      parents, kept: the pruned skeleton and its node mask (`pruned_skeleton`).
+      horizons: generated frames N measured (each >= 2).
+      cond: T_cond observed frames.
+      samples: S futures per conditioning clip.
+      clips: conditioning clips per test sequence.
+      stride, real_per_sequence: spacing and number per sequence of the real clips.
+      seed: PRNG seed of the samples.
+
+    Returns:
+      {"clips": [[sequence, start]], "methods": {method: {str(N): `generation_measures`}},
+       "real": {str(N): `real_reference`}}.
+    """
+    if not horizons or min(horizons) < 2:
+        raise ValueError(f"generation horizons must be >= 2 frames, got {horizons}")
+    parents, kept = np.asarray(parents), np.asarray(kept, bool)
+    root = int(np.flatnonzero(parents == np.arange(len(parents)))[0])
+    names, x_cond = conditioning_clips(trajectories, cond, clips)
+    longest = max(horizons)
+    futures = {
+        method: generated_futures(model, x_cond, longest, samples, jax.random.key(seed))
+        for method, model in models.items()
+    }
+    futures["Hold last pose"] = hold_last_pose(x_cond, longest, samples)
+    out: dict[str, Any] = {"clips": [list(c) for c in names], "methods": {}, "real": {}}
+    most = max(len(x) for x in trajectories.values())
+    for n in horizons:
+        real = real_clips(trajectories, n, stride, real_per_sequence)
+        out["real"][str(n)] = real_reference(real, parents, kept)
+        no_real = f"no test sequence has {n} frames; the longest has {most}"
+        for method, x in futures.items():
+            measures = generation_measures(x[:, :, :n], real, parents, kept, root, no_real)
+            out["methods"].setdefault(method, {})[str(n)] = measures
+    return out
+
+
+def _generation_entry(measures: dict, measure: str) -> dict | str:
+    """The summary of `measure` in one method's measures at one horizon, or why there is none."""
+    distance = measures["set_distance"]
+    if measure in ("to_real", "to_generated"):
+        return distance.get(measure) or distance["reason"]
+    if measure == "set_distance" and "reason" in distance:
+        return distance["reason"]
+    return measures.get(measure) or "one sample per clip"
+
+
+def generation_tables(gen: dict) -> list[str]:
+    """Markdown lines of the generation evaluation: one table per measure, methods x horizons."""
+    methods = gen["methods"]
+    horizons = list(next(iter(methods.values())).keys())
+    lines: list[str] = []
+    for measure, (title, ci) in GEN_MEASURES.items():
+        lines += [
+            f"### {title}",
+            "",
+            f"Mean ({ci}).",
+            "",
+            "| method | " + " | ".join(f"N = {n}" for n in horizons) + " |",
+            "|---|" + "---|" * len(horizons),
+        ]
+        rows = {
+            m: [_generation_entry(by_n[n], measure) for n in horizons]
+            for m, by_n in methods.items()
+        }
+        if measure in ("set_diversity", "bone_error"):
+            rows[REFERENCE] = [
+                gen["real"][n].get(measure) or f"{gen['real'][n]['clips']} test clips of {n} frames"
+                for n in horizons
+            ]
+        for method, entries in rows.items():
+            cells = [
+                fmt(e["mean"], e["ci95"]) if isinstance(e, dict) else f"n/a ({e})" for e in entries
+            ]
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return lines
+
+
+def plot_generation(path: Path, gen: dict, title: str = "") -> None:
+    """Each measure against the horizon, one line per method, 95% CI error bars."""
+    import matplotlib.pyplot as plt
+
+    from nmjax.viz import save_figure  # selects the Agg backend
+
+    measures = ("diversity", "set_diversity", "bone_error", "set_distance")
+    labels = ("diversity (APD per clip)", "set diversity", "bone-length error", "set distance")
+    horizons = [int(h) for h in next(iter(gen["methods"].values()))]
+    fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
+    for ax, measure, label in zip(axes, measures, labels, strict=True):
+        series = dict(gen["methods"])
+        if measure in ("set_diversity", "bone_error"):
+            series[REFERENCE] = gen["real"]
+        for method, by_n in series.items():
+            n = [int(h) for h in by_n if measure in by_n[h]]
+            means = np.array([by_n[str(h)][measure]["mean"] for h in n], np.float64)
+            ci = np.nan_to_num(np.array([by_n[str(h)][measure]["ci95"] for h in n], np.float64))
+            style = "--" if method == REFERENCE else "-"
+            ax.errorbar(n, means, yerr=ci, fmt=style, marker="o", ms=3, capsize=3, label=method)
+        ax.set_xscale("log")
+        ax.set_xticks(horizons, [str(h) for h in horizons])
+        ax.minorticks_off()
+        ax.set_xlim(min(horizons) / 1.4, max(horizons) * 1.4)
+        ax.set_xlabel("horizon N (generated frames)")
+        ax.set_title(label, fontsize=9)
+    axes[1].legend(fontsize=7)  # the panel with every method and the reference
+    save_figure(fig, path, title=title or None)
+
+
 # --- tables and plots ---------------------------------------------------------------------------
 
 
@@ -516,6 +849,107 @@ def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
 # --- the command ---------------------------------------------------------------------------------
 
 
+def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig, Path, Path | None]:
+    """(config of the "nm" run, its phase-1 run, the VRNN run given or found beside it).
+
+    Raises:
+      ValueError: `run` is not an "nm" run, or the VRNN run was trained on another phase-1 run.
+    """
+    dyn_cfg = common.load_config(run, DynTrainConfig)
+    if dyn_cfg.model.model != "nm":
+        raise ValueError(
+            f"{run} is a '{dyn_cfg.model.model}' run; give the Neural Marionette ('nm') run "
+            "as --run and the positional baseline as --vrnn-run"
+        )
+    skel_run = Path(dyn_cfg.skel_run)
+    if vrnn_run is None:
+        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run)
+    vrnn_run = Path(vrnn_run)
+    vrnn_skel = common.load_config(vrnn_run, DynTrainConfig).skel_run
+    if not vrnn_skel or Path(vrnn_skel).resolve() != skel_run.resolve():
+        raise ValueError(
+            f"--vrnn-run {vrnn_run} was trained on the phase-1 run {vrnn_skel}, {run} on "
+            f"{skel_run}; compare models of the same skeleton (train the baseline with "
+            f"`nmjax train-dyn --model vrnn --skel-run {skel_run}`)"
+        )
+    return dyn_cfg, skel_run, vrnn_run
+
+
+def evaluate_generation_run(
+    run: str | Path,
+    *,
+    vrnn_run: str | Path | None = None,
+    out: str | Path | None = None,
+    horizons: tuple[int, ...] = GEN_HORIZONS,
+    cond: int = 5,
+    samples: int = 10,
+    clips: int = 4,
+    seed: int = 0,
+) -> dict:
+    """The generation evaluation (`evaluate_generation`) of an "nm" run, its VRNN baseline (given
+    or found beside it) and hold-last-pose; writes generation.json, generation.md and
+    generation.png into `out` (default RUN/eval)."""
+    from nmjax.train import dyn
+
+    run = Path(run)
+    if run_kind(run) != "dyn":
+        raise ValueError(
+            f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
+        )
+    _, skel_run, vrnn_run = phase2_runs(run, vrnn_run)
+    skeleton = pruned_skeleton(skel_run)
+    if skeleton is None:
+        raise FileNotFoundError(
+            f"{skel_run}/skeleton.json not found; run `nmjax extract-skeleton --run {skel_run}`"
+        )
+    models = {"Ours": nnx.split(dyn.restore_model(run))}
+    if vrnn_run is not None:
+        models["VRNN"] = nnx.split(dyn.restore_model(vrnn_run))
+    settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
+    gen = evaluate_generation(
+        models,
+        dyn.load_trajectories(skel_run, "test"),
+        *skeleton,
+        horizons=horizons,
+        cond=cond,
+        samples=samples,
+        clips=clips,
+        seed=seed,
+    )
+    results = {
+        "run": str(run),
+        "skel_run": str(skel_run),
+        "vrnn_run": None if vrnn_run is None else str(vrnn_run),
+        "settings": {**settings, "seed": seed, "kept_nodes": int(skeleton[1].sum())},
+        **gen,
+    }
+    out = Path(out) if out is not None else run / "eval"
+    io.write_json(out / "generation.json", results)
+    io.write_text(out / "generation.md", generation_markdown(results))
+    plot_generation(out / "generation.png", results, title=f"{run.name}: generation")
+    return results
+
+
+def generation_markdown(results: dict) -> str:
+    """generation.md: what was measured, then the tables of `generation_tables`."""
+    st = results["settings"]
+    n_clips = len(results["clips"])
+    head = [
+        f"# Generation of {results['run']}",
+        "",
+        f"VRNN baseline: {results['vrnn_run'] or 'none found'}. {n_clips} conditioning clips of "
+        f"{st['cond']} test frames ({st['clips']} per test sequence), {st['samples']} samples "
+        f"each; horizon N = frames generated after them. Distances are mean per-frame keypoint "
+        f"distances (Euclidean, xyz, normalised units) over the {st['kept_nodes']} nodes of the "
+        "pruned skeleton. Hold last pose repeats the last conditioning frame: diversity and "
+        "bone-length error 0 by construction (up to float round-off). Ours keeps every bone of "
+        "its full tree exactly (forward kinematics with the lengths of the conditioning "
+        "frames); a bone of the pruned tree that skips a pruned joint can still change length.",
+        "",
+    ]
+    return "\n".join(head + generation_tables(results))
+
+
 def evaluate_run(
     run: str | Path,
     *,
@@ -533,15 +967,7 @@ def evaluate_run(
     run = Path(run)
     results: dict[str, Any] = {"run": str(run)}
     if run_kind(run) == "dyn":
-        dyn_cfg = common.load_config(run, DynTrainConfig)
-        if dyn_cfg.model.model != "nm":
-            raise ValueError(
-                f"{run} is a '{dyn_cfg.model.model}' run; give the Neural Marionette ('nm') run "
-                "as --run and the positional baseline as --vrnn-run"
-            )
-        skel_run = Path(dyn_cfg.skel_run)
-        if vrnn_run is None:
-            vrnn_run = find_vrnn_run(run, skel_run)
+        dyn_cfg, skel_run, vrnn_run = phase2_runs(run, vrnn_run)
         results["skel_run"] = str(skel_run)
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
     else:
@@ -583,7 +1009,8 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="nmjax evaluate",
         description="SC-score, 4D-tracking Chamfer and interpolation M-CD (paper Tables 1, 2, 11, "
-        "12) of a phase-2 run (or the phase-1 metrics of a phase-1 run).",
+        "12) of a phase-2 run (or the phase-1 metrics of a phase-1 run); with --generation, the "
+        "generation measures of a phase-2 run instead.",
     )
     parser.add_argument("--run", required=True, help="phase-2 ('nm') or phase-1 run folder")
     parser.add_argument("--vrnn-run", default=None, help="positional VRNN run (default: found)")
@@ -595,18 +1022,54 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     parser.add_argument("--max-segments", type=int, default=4, help="keyframe pairs per sequence")
     parser.add_argument("--max-crops", type=int, default=8, help="phase-1 test crops per sequence")
     parser.add_argument("--seed", type=int, default=0)
+    gen = parser.add_argument_group(
+        "generation", "--generation writes RUN/eval/generation.{json,md,png} instead of the tables"
+    )
+    gen.add_argument(
+        "--generation",
+        action="store_true",
+        help="only the generation evaluation: diversity, bone-length error, set distance",
+    )
+    gen.add_argument(
+        "--horizons", default=",".join(map(str, GEN_HORIZONS)), help="generated frames N"
+    )
+    gen.add_argument("--samples", type=int, default=10, help="futures per conditioning clip")
+    gen.add_argument("--cond", type=int, default=5, help="T_cond conditioning frames")
+    gen.add_argument("--clips", type=int, default=4, help="conditioning clips per test sequence")
     return parser.parse_args(argv)
+
+
+def _integers(text: str, option: str, minimum: int) -> tuple[int, ...]:
+    """'3,5,10' -> (3, 5, 10); a ValueError naming `option` unless all are >= `minimum`."""
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < minimum:
+        raise ValueError(f"{option} must be comma-separated integers >= {minimum}, got {text!r}")
+    return values
 
 
 def main(argv: list[str]) -> int:
     args = parse_args(argv)
     try:
-        rates = tuple(int(r) for r in args.rates.split(",") if r.strip())
-        if not rates or min(rates) < 1:
-            raise ValueError(f"--rates must be positive integers, got {args.rates!r}")
-        for name in ("trajectories", "max_segments", "max_crops"):
+        rates = _integers(args.rates, "--rates", 1)
+        for name in ("trajectories", "max_segments", "max_crops", "samples", "cond", "clips"):
             if getattr(args, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
+        if args.generation:
+            results = evaluate_generation_run(
+                args.run,
+                vrnn_run=args.vrnn_run,
+                out=args.out,
+                horizons=_integers(args.horizons, "--horizons", 2),
+                cond=args.cond,
+                samples=args.samples,
+                clips=args.clips,
+                seed=args.seed,
+            )
+            print(generation_markdown(results))
+            return 0
         results = evaluate_run(
             args.run,
             vrnn_run=args.vrnn_run,

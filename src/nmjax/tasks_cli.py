@@ -1,6 +1,7 @@
 """The task subcommands on a phase-2 run folder (which records its phase-1 run):
 
     nmjax generate    --run RUN [--cond 5] [--gen 25] [--samples 3] [--inputs 2] [--voxels]
+                      (--gen 300 works; past the end of a test sequence its observed panel holds)
     nmjax interpolate --run RUN [--gap 10] [--trajectories 16] [--inputs 2] [--vrnn-run RUN2]
     nmjax retarget    --run RUN --target MESH [--source SEQ] [--frames 30]
 
@@ -181,14 +182,18 @@ def run_generate(
     """Motion generation for the first `inputs` test sequences; returns the output folder.
 
     Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), observed (I, T, K, 4) - the true
-    continuation, padded - names, parents), optionally voxels.npz (decoded occupancy of every
-    sample, uint8), and per input a GIF and PNG strip (observed next to the samples).
+    continuation, padded with its last frame where the sequence is shorter (long horizons) -
+    observed_frames (I,) the real frames of it, names, parents), optionally voxels.npz (decoded
+    occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
+    samples).
     """
     from nmjax.train import dyn
 
     model, cfg, skel_run = load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
-    names, observed = pick_inputs(dyn.load_trajectories(skel_run, "test"), inputs, cond + gen)
+    trajectories = dyn.load_trajectories(skel_run, "test")
+    names, observed = pick_inputs(trajectories, inputs, cond + gen)
+    real_frames = np.array([min(len(trajectories[n]), cond + gen) for n in names], np.int32)
     graphdef, state = nnx.split(model)
     keypoints, _ = tasks.generate_jit(
         graphdef,
@@ -203,6 +208,7 @@ def run_generate(
         out / "generate.npz",
         keypoints=keypoints,
         observed=observed,
+        observed_frames=real_frames,
         names=np.array(names),
         parents=np.array(model.parents),
         cond=np.int32(cond),
@@ -219,7 +225,9 @@ def run_generate(
         io.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
-        labels = ["observed"] + [f"sample {s}" for s in range(samples)]
+        held = real_frames[i] < cond + gen  # the sequence ends before the horizon
+        labels = [f"observed (held from {real_frames[i]})" if held else "observed"]
+        labels += [f"sample {s}" for s in range(samples)]
         write_motion_pictures(out / name, motions, labels, model.parents)
     return out
 

@@ -270,6 +270,17 @@ def test_generation_command_writes_its_table_and_plot(runs, tmp_path):
         assert text in table
     assert (out / "generation.png").read_bytes()[:4] == b"\x89PNG"
     assert not (out / "results.json").exists()  # the other tables are not recomputed
+    # Real clips from longer sequences (--real-keypoints) measure the set distance at N = 20.
+    with np.load(runs["skel"] / "keypoints_test.npz") as npz:
+        longer = {name: np.concatenate([npz[name]] * 3) for name in npz.files}  # 36 frames
+    np.savez(tmp_path / "long.npz", **longer)
+    argv += ["--real-keypoints", str(tmp_path / "long.npz")]
+    assert cli.main([*argv, "--out", str(tmp_path / "eval2")]) == 0
+    results = json.loads((tmp_path / "eval2" / "generation.json").read_text())
+    assert results["settings"]["real_keypoints"] == str(tmp_path / "long.npz")
+    ours = results["methods"]["Ours"]
+    assert np.isfinite(ours["20"]["set_distance"]["mean"]) and ours["20"]["set_distance"]["n"] > 0
+    assert cli.main([*argv[:-1], str(tmp_path / "missing.npz")]) == 1
 
 
 def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs, tmp_path, capsys):

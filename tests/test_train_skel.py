@@ -149,6 +149,14 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
     with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.all_steps() == [1]
     assert (tmp_path / "run" / "skeleton.json").is_file()
+    # The exporter can read another copy of the dataset and write elsewhere: same keypoints.
+    again = skel.export_keypoints(
+        tmp_path / "run", "test", data_root=data_root, path=tmp_path / "again.npz"
+    )
+    with np.load(again) as a, np.load(tmp_path / "run" / "keypoints_test.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for name in a.files:
+            np.testing.assert_array_equal(a[name], b[name])
     full = skel.train(_cfg(data_root), tmp_path / "full", progress=False, finalize=False)
     assert full["step"] == 6 and full["stopped_by_time_limit"] is False
 

@@ -626,6 +626,7 @@ def evaluate_generation(
     stride: int = 5,
     real_per_sequence: int = 16,
     seed: int = 0,
+    real_trajectories: dict[str, np.ndarray] | None = None,
 ) -> dict:
     """Diversity, bone-length error and set distance to real motion of generated motion at
     several horizons, for each model and the hold-last-pose baseline.
@@ -647,6 +648,9 @@ def evaluate_generation(
       clips: conditioning clips per test sequence.
       stride, real_per_sequence: spacing and number per sequence of the real clips.
       seed: PRNG seed of the samples.
+      real_trajectories: {sequence: (T_seq, K, 4)} the real clips are cut from instead of the
+        test keypoints, e.g. the detector's keypoints of longer sequences of the same body
+        (`export_keypoints(..., data_root=...)`), so that long horizons have real clips.
 
     Returns:
       {"clips": [[sequence, start]], "methods": {method: {str(N): `generation_measures`}},
@@ -664,11 +668,13 @@ def evaluate_generation(
     }
     futures["Hold last pose"] = hold_last_pose(x_cond, longest, samples)
     out: dict[str, Any] = {"clips": [list(c) for c in names], "methods": {}, "real": {}}
-    most = max(len(x) for x in trajectories.values())
+    reference = trajectories if real_trajectories is None else real_trajectories
+    most = max(len(x) for x in reference.values())
     for n in horizons:
-        real = real_clips(trajectories, n, stride, real_per_sequence)
+        real = real_clips(reference, n, stride, real_per_sequence)
         out["real"][str(n)] = real_reference(real, parents, kept)
-        no_real = f"no test sequence has {n} frames; the longest has {most}"
+        source = "test" if real_trajectories is None else "real"
+        no_real = f"no {source} sequence has {n} frames; the longest has {most}"
         for method, x in futures.items():
             measures = generation_measures(x[:, :, :n], real, parents, kept, root, no_real)
             out["methods"].setdefault(method, {})[str(n)] = measures
@@ -885,10 +891,12 @@ def evaluate_generation_run(
     samples: int = 10,
     clips: int = 4,
     seed: int = 0,
+    real_keypoints: str | Path | None = None,
 ) -> dict:
     """The generation evaluation (`evaluate_generation`) of an "nm" run, its VRNN baseline (given
     or found beside it) and hold-last-pose; writes generation.json, generation.md and
-    generation.png into `out` (default RUN/eval)."""
+    generation.png into `out` (default RUN/eval). `real_keypoints`: an .npz of keypoint
+    sequences (the layout of keypoints_test.npz) to cut the real clips from."""
     from nmjax.train import dyn
 
     run = Path(run)
@@ -906,6 +914,10 @@ def evaluate_generation_run(
     if vrnn_run is not None:
         models["VRNN"] = nnx.split(dyn.restore_model(vrnn_run))
     settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
+    real = None
+    if real_keypoints is not None:
+        real = dyn.read_trajectories(Path(real_keypoints))
+        settings["real_keypoints"] = str(real_keypoints)
     gen = evaluate_generation(
         models,
         dyn.load_trajectories(skel_run, "test"),
@@ -915,6 +927,7 @@ def evaluate_generation_run(
         samples=samples,
         clips=clips,
         seed=seed,
+        real_trajectories=real,
     )
     results = {
         "run": str(run),
@@ -1036,6 +1049,13 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     gen.add_argument("--samples", type=int, default=10, help="futures per conditioning clip")
     gen.add_argument("--cond", type=int, default=5, help="T_cond conditioning frames")
     gen.add_argument("--clips", type=int, default=4, help="conditioning clips per test sequence")
+    gen.add_argument(
+        "--real-keypoints",
+        default=None,
+        metavar="NPZ",
+        help="keypoint sequences to cut the real clips from (default: the test keypoints); "
+        "longer sequences give real clips at long horizons",
+    )
     return parser.parse_args(argv)
 
 
@@ -1067,6 +1087,7 @@ def main(argv: list[str]) -> int:
                 samples=args.samples,
                 clips=args.clips,
                 seed=args.seed,
+                real_keypoints=args.real_keypoints,
             )
             print(generation_markdown(results))
             return 0

@@ -122,10 +122,19 @@ def load_trajectories(run: Path, split: str) -> dict[str, np.ndarray]:
             ) from err
         print(f"[train-dyn] {path.name} missing: running the frozen detector of {run}")
         export_keypoints(run, split)
+    return read_trajectories(path)
+
+
+def read_trajectories(path: Path) -> dict[str, np.ndarray]:
+    """{sequence: (T_seq, K, 4) float32} of a keypoints .npz (the layout of keypoints_*.npz)."""
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found; write it with `nmjax.train.skel.export_keypoints(...)`"
+        )
     with np.load(path) as npz:
         trajectories = {name: np.asarray(npz[name], np.float32) for name in npz.files}
     if not trajectories:
-        raise ValueError(f"{path} holds no sequences; re-export the keypoints of {run}")
+        raise ValueError(f"{path} holds no sequences; re-export the keypoints")
     for name, x in trajectories.items():
         if x.ndim != 3 or x.shape[-1] != 4:
             raise ValueError(f"{path}[{name!r}] has shape {x.shape}; expected (T_seq, K, 4)")

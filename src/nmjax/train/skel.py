@@ -413,13 +413,20 @@ def sequence_windows(voxels: np.ndarray, frames: int) -> np.ndarray:
 
 
 def export_keypoints(
-    run_dir: str | Path, split: str, *, model: KeypointDetector | None = None
+    run_dir: str | Path,
+    split: str,
+    *,
+    model: KeypointDetector | None = None,
+    data_root: str | Path | None = None,
+    path: str | Path | None = None,
 ) -> Path:
     """Writes `<run>/keypoints_<split>.npz`: one (S, K, 4) array per sequence of the split.
 
     Each whole sequence (every `sample_rate`-th frame) is normalised with one bounding box
     (DESIGN section 4), voxelised, cut into consecutive windows of T frames (the last padded by
     repeating the last frame) and run through the detector in jit-compiled batches of B windows.
+    `data_root` reads the sequences from another copy of the run's dataset (e.g. a set of
+    longer synthetic sequences), `path` writes the file elsewhere.
     """
     from nmjax.data.datasets import load_sequences
     from nmjax.data.voxelize import normalize_sequence, voxelize
@@ -437,7 +444,8 @@ def export_keypoints(
 
     t, b = cfg.data.frames, cfg.data.batch_size
     arrays = {}
-    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
+    root = cfg.data.root if data_root is None else data_root
+    for seq in load_sequences(cfg.data.name, split, root):
         points = np.asarray(seq.vertices[:: cfg.data.sample_rate], np.float32)
         points, _ = normalize_sequence(points)
         windows = sequence_windows(voxelize(points, cfg.data.grid), t)
@@ -450,7 +458,7 @@ def export_keypoints(
         ]
         keypoints = np.concatenate(chunks).reshape(-1, *chunks[0].shape[2:])
         arrays[seq.name] = keypoints[: points.shape[0]].astype(np.float32)
-    path = run / f"keypoints_{split}.npz"
+    path = run / f"keypoints_{split}.npz" if path is None else Path(path)
     io.save_npz(path, **arrays)
     return path
 

@@ -135,7 +135,11 @@ def run_variant(
     cfg = variant_config(data, name, minutes, seed, steps)
     run = RUNS / f"{data}-{name}-s{seed}"
     begin = time.perf_counter()
-    summary = skel.train(cfg, run, overwrite=True, progress=sys.stderr.isatty())
+    # The base rows also feed phase 2 (experiments/generation_table.py): only they export the
+    # keypoints of every sequence.
+    summary = skel.train(
+        cfg, run, overwrite=True, export=name == "base", progress=sys.stderr.isatty()
+    )
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)

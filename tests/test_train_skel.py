@@ -144,6 +144,9 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
     # checkpointed and finalised like step `steps` would be.
     cfg = _cfg(data_root, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
     summary = skel.train(cfg, tmp_path / "run", progress=False)
+    short = skel.train(cfg, tmp_path / "short", progress=False, export=False)
+    assert (tmp_path / "short" / "skeleton.json").is_file() and short["step"] == 1
+    assert not list((tmp_path / "short").glob("keypoints_*.npz"))
     assert summary["step"] == 1 and summary["stopped_by_time_limit"] is True
     assert "val/loss" in summary
     with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:

@@ -228,6 +228,7 @@ def train(
     resume: bool = False,
     overwrite: bool = False,
     finalize: bool = True,
+    export: bool = True,
     progress: bool = True,
     step_hook: Callable[[int, Any], Any] | None = None,
 ) -> dict[str, Any]:
@@ -239,6 +240,8 @@ def train(
       resume: continue from the latest checkpoint of `run_dir` (state, step, data position).
       overwrite: replace an existing `run_dir`.
       finalize: write affinity.npy, keypoint_stats.npz, skeleton.json, keypoints_*.npz at the end.
+      export: with `finalize`, also export keypoints_{train,test}.npz (phase 2 reads them; a
+        study that only scores the detector can skip the pass over every sequence).
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step (step = steps
         done so far).
@@ -329,7 +332,7 @@ def train(
         writer.close()
         ckpt.close()
     if finalize:
-        write_artifacts(run, graphdef, state, val_batches, steps)
+        write_artifacts(run, graphdef, state, val_batches, steps, export=export)
     return summary
 
 
@@ -351,8 +354,11 @@ def _validation_figure(run, step, graphdef, state, val_batches, val_kp) -> None:
 # --- artefacts for the later stages (contract C10) ---------------------------------------------
 
 
-def write_artifacts(run: Path, graphdef: Any, state: Any, val_batches, steps: Steps) -> None:
-    """affinity.npy, keypoint_stats.npz, then skeleton.json and keypoints_{train,test}.npz.
+def write_artifacts(
+    run: Path, graphdef: Any, state: Any, val_batches, steps: Steps, export: bool = True
+) -> None:
+    """affinity.npy, keypoint_stats.npz, then skeleton.json and (with `export`)
+    keypoints_{train,test}.npz.
 
     Every host takes part in the computations on the (global) state; only process 0 writes.
     """
@@ -380,7 +386,7 @@ def write_artifacts(run: Path, graphdef: Any, state: Any, val_batches, steps: St
             f"`nmjax extract-skeleton --run {run}` once fixed",
             file=sys.stderr,
         )
-    for split in ("train", "test"):
+    for split in ("train", "test") if export else ():
         export_keypoints(run, split, model=model)
 
 

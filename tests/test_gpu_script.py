@@ -11,6 +11,7 @@ import re
 import subprocess
 import sys
 import tarfile
+import time
 import tomllib
 from pathlib import Path
 
@@ -256,3 +257,39 @@ def test_targets_read_the_rows():
     assert t["dyn_nm_ge_100_steps_per_s"] is False
     empty = paper_scale.targets({})
     assert set(empty.values()) == {None}
+
+
+def _gone(pid: int) -> bool:
+    """The process has exited (absent, or a zombie waiting for init)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except FileNotFoundError:
+        return True
+    return stat.rsplit(")", 1)[1].split()[0] == "Z"
+
+
+def test_a_stage_past_its_limit_is_killed_with_its_children_and_a_failure_recorded(tmp_path):
+    args = paper_scale.parse_args(
+        ["--dry-run", "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work")]
+    )
+    runner = paper_scale.Runner(paper_scale.DRY, args)
+    marker = tmp_path / "grandchild.pid"
+    code = (
+        "import subprocess, sys, time\n"
+        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'])\n"
+        f"open({str(marker)!r}, 'w').write(str(p.pid))\n"
+        "print('started', flush=True)\n"
+        "time.sleep(120)\n"
+    )
+    status, seconds, tail = runner.run("sleeper", [sys.executable, "-c", code], limit=5)
+    assert status == "timeout" and seconds < 60 and tail == ["started"]
+    grandchild = int(marker.read_text())
+    deadline = time.time() + 10
+    while not _gone(grandchild) and time.time() < deadline:
+        time.sleep(0.1)
+    assert _gone(grandchild)
+
+    failing = [sys.executable, "-c", "print('boom'); raise SystemExit(3)"]
+    assert runner.stage("devices", failing) is False
+    entry = json.loads((tmp_path / "out" / "summary.json").read_text())["stages"]["devices"]
+    assert entry["status"] == "failed (exit 3)" and entry["output_tail"] == ["boom"]

@@ -4,7 +4,7 @@
 
 Writes experiments/results/train_skel_<data>.json (the run's configuration, the command that made
 it, wall time, the final validation metrics and the curves) and .png (one panel per loss term,
-train and validation, plus the SC-score).
+train and validation, plus the SC-score); `--out DIR` writes them to DIR instead.
 """
 
 from __future__ import annotations
@@ -54,6 +54,7 @@ def main() -> None:
     parser.add_argument("--run", required=True, type=Path, help="phase-1 run folder")
     parser.add_argument("--command", default="", help="the command that trained the run")
     parser.add_argument("--wall-minutes", type=float, default=None, help="measured wall time")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="output folder")
     args = parser.parse_args()
 
     config = json.loads((args.run / "config.json").read_text())
@@ -71,13 +72,13 @@ def main() -> None:
         "train": train,
         "val": val,
     }
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    io.write_json(RESULTS / f"train_skel_{data}.json", summary)
+    args.out.mkdir(parents=True, exist_ok=True)
+    io.write_json(args.out / f"train_skel_{data}.json", summary)
     plot(
         train,
         val,
         f"phase 1 on {data} ({summary['steps']} steps)",
-        RESULTS / f"train_skel_{data}.png",
+        args.out / f"train_skel_{data}.png",
     )
     print({k: round(v, 4) for k, v in final_val.items()})
 

@@ -31,16 +31,106 @@ def _reference_conv_same(x, w):
     return out
 
 
+def _force_conv_form(monkeypatch, form: str) -> None:
+    """Makes `blocks.conv3d_same` take `form` ("native", "per_tap", "stacked") for any input."""
+    if form == "native":
+        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 1 << 62)
+        return
+    monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
+    monkeypatch.setattr(blocks, "SLICED_CONV_MAX_CHANNELS", 1 << 30)
+    monkeypatch.setattr(blocks, "STACKED_TAPS_MAX_CHANNELS", 1 << 30 if form == "stacked" else 0)
+
+
+def _jaxpr(fn, *args) -> str:
+    # A fresh function each time: make_jaxpr caches traces per function, and the form is chosen
+    # from module attributes while tracing.
+    return str(jax.make_jaxpr(lambda *a: fn(*a))(*args))
+
+
+def _conv_count(fn, *args) -> int:
+    return _jaxpr(fn, *args).count("conv_general_dilated")
+
+
 @pytest.mark.parametrize("kernel", [1, 3, 5])
-@pytest.mark.parametrize("sliced", [False, True])
-def test_conv3d_same_matches_numpy(kernel, sliced, monkeypatch):
-    if sliced:
-        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
+@pytest.mark.parametrize("form", ["native", "per_tap", "stacked"])
+def test_conv3d_same_matches_numpy(kernel, form, monkeypatch):
+    _force_conv_form(monkeypatch, form)
     conv = blocks.Conv3D(2, 3, kernel, rngs=nnx.Rngs(0))
     conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
     x = np.random.default_rng(1).normal(size=(2, 6, 5, 4, 2)).astype(np.float32)
     expected = _reference_conv_same(x, np.asarray(conv.kernel[...])) + [0.5, -1.0, 2.0]
     np.testing.assert_allclose(conv(jnp.asarray(x)), expected, atol=1e-4)
+
+
+@pytest.mark.parametrize("kernel", [3, 5])
+def test_conv3d_same_forms_agree_in_value_and_gradient(kernel, monkeypatch):
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.normal(size=(2, 6, 5, 4, 3)), jnp.float32)
+    w = jnp.asarray(rng.normal(size=(kernel, kernel, kernel, 3, 4)), jnp.float32)
+    cotangent = jnp.asarray(rng.normal(size=(2, 6, 5, 4, 4)), jnp.float32)
+
+    def loss(x, w):
+        return jnp.sum(blocks.conv3d_same(x, w) * cotangent)
+
+    results = {}
+    for form, convs in (("native", 1), ("per_tap", kernel), ("stacked", 1)):
+        _force_conv_form(monkeypatch, form)
+        assert _conv_count(blocks.conv3d_same, x, w) == convs, form
+        results[form] = (blocks.conv3d_same(x, w), *jax.grad(loss, argnums=(0, 1))(x, w))
+    for form in ("per_tap", "stacked"):
+        for got, want in zip(results[form], results["native"], strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4, err_msg=form)
+
+
+def test_conv3d_same_chooses_its_form_by_width_on_cpu(monkeypatch):
+    monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
+    rng = np.random.default_rng(5)
+    k = 3
+    for ci, convs, dims in (
+        (blocks.STACKED_TAPS_MAX_CHANNELS // k, 1, 2),  # thin: taps stacked into one 2D conv
+        (blocks.STACKED_TAPS_MAX_CHANNELS // k + 1, k, 2),  # one 2D conv per tap
+        (blocks.SLICED_CONV_MAX_CHANNELS, 1, 3),  # wide: XLA's 3D convolution
+    ):
+        x = jnp.zeros((1, 4, 4, 4, ci), jnp.float32)
+        w = jnp.asarray(rng.normal(size=(k, k, k, ci, 2)), jnp.float32)
+        jaxpr = _jaxpr(blocks.conv3d_same, x, w)
+        assert jaxpr.count("conv_general_dilated") == convs, ci
+        assert jaxpr.count(f"window_strides=({', '.join(['1'] * dims)})") == convs, ci
+
+
+def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms(monkeypatch):
+    """The whole phase-1 loss and its gradient with every big-enough conv sliced (per tap),
+    against the code's width-dependent choice made to cover all three forms on tiny shapes."""
+    from nmjax import losses
+
+    cfg = skel_preset("synth-arm", "tiny")
+    model_cfg = dataclasses.replace(
+        cfg.model, grid=8, channels=4, num_keypoints=4, hourglass_channels=(4, 4, 4)
+    )
+    rng = np.random.default_rng(6)
+    voxels = jnp.asarray(rng.random((1, 3, 8, 8, 8)) > 0.7, jnp.float32)
+    graphdef, params = nnx.split(KeypointDetector(model_cfg, rngs=nnx.Rngs(0)))
+
+    def loss(params):
+        return losses.skeleton_loss(nnx.merge(graphdef, params)(voxels), cfg.weights)[0]
+
+    results = {}
+    for name, min_size, max_channels, stacked in (
+        ("per_tap", 0, 1 << 30, 0),
+        # widths 1..8 here: the stem stacked, its coordinates (3 channels, k=5) per tap, 4 and
+        # more channels native
+        ("chosen", 0, 4, 6),
+    ):
+        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", min_size)
+        monkeypatch.setattr(blocks, "SLICED_CONV_MAX_CHANNELS", max_channels)
+        monkeypatch.setattr(blocks, "STACKED_TAPS_MAX_CHANNELS", stacked)
+        results[name] = jax.value_and_grad(loss)(params)
+    (v0, g0), (v1, g1) = results["per_tap"], results["chosen"]
+    assert float(v1) == pytest.approx(float(v0), rel=1e-5)
+    leaves0, leaves1 = jax.tree.leaves(g0), jax.tree.leaves(g1)
+    norm = np.sqrt(sum(float(jnp.sum(a**2)) for a in leaves0))
+    diff = np.sqrt(sum(float(jnp.sum((a - b) ** 2)) for a, b in zip(leaves0, leaves1, strict=True)))
+    assert diff <= 1e-4 * norm
 
 
 def test_strided_pool_and_transposed_conv_match_definitions():

@@ -484,16 +484,18 @@ def plain_conv3d(x: jax.Array, kernel: jax.Array) -> jax.Array:
 
 
 def fast_conv3d(x: jax.Array, kernel: jax.Array) -> jax.Array:
-    """`blocks.conv3d_same` with the sliced (2D-convolution) form forced for every size; on
-    non-CPU backends conv3d_same always uses the native convolution."""
+    """`blocks.conv3d_same` with the sliced (2D-convolution) form forced for every size and width
+    (taps stacked on the channels when the input is thin); on non-CPU backends conv3d_same always
+    uses the native convolution."""
     from nmjax.models import blocks
 
-    saved = blocks.SLICED_CONV_MIN_SIZE
-    blocks.SLICED_CONV_MIN_SIZE = 0  # read while tracing
+    saved = blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS
+    # read while tracing
+    blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS = 0, x.shape[-1] + 1
     try:
         return blocks.conv3d_same(x, kernel)
     finally:
-        blocks.SLICED_CONV_MIN_SIZE = saved
+        blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS = saved
 
 
 def plain_stem(voxels: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -563,6 +565,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     """The cases (a)-(d) on the shapes of `skel_preset(data, preset)`; `batch` overrides B*T."""
     from flax import nnx
 
+    from nmjax.models import blocks
     from nmjax.models.detector import VoxelDecoder
 
     cfg = skel_preset(data, preset)
@@ -604,8 +607,11 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     for label, n, ci, co, ks in (
         ("stem occupancy", big, 1, c4, 5),
         ("decoder last", big, c4, c4, 3),
+        ("decoder first at G", big, c2, c4, 3),
         ("feature res1", big // 2, c4, c2, 3),
     ):
+        sliced = bt * n**3 * ci >= blocks.SLICED_CONV_MIN_SIZE
+        sliced = sliced and ci < blocks.SLICED_CONV_MAX_CHANNELS
         cases.append(
             Case(
                 f"(b) sliced 3D conv: {label}",
@@ -613,7 +619,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 plain_conv3d,
                 fast_conv3d,
                 (normal(bt, n, n, n, ci), normal(ks, ks, ks, ci, co, scale=0.1)),
-                applies=on_cpu,
+                applies=on_cpu and sliced,
             )
         )
     cases.append(

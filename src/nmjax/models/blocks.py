@@ -2,11 +2,11 @@
 
 Every block takes a batch (B, X, Y, Z, C); callers fold time into the batch axis.
 
-`Conv3D` computes exactly the 3D convolution but not with XLA's 3D convolution on CPU, which is
-3-10x slower there than its 2D convolution: a stride-1 kernel is evaluated as a sum over the k
-depth offsets of 2D convolutions (x, y, z) -> ((B x), y, z); the strided 2x2x2 "pool" is a
-space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul and a
-depth-to-space reshape. On GPU/TPU backends the native convolution is used.
+`Conv3D` computes exactly the 3D convolution but, on CPU and for inputs of few channels, not with
+XLA's 3D convolution, which is 3-10x slower there than its 2D convolution: a stride-1 kernel is
+evaluated as 2D convolutions over (y, z) with x folded into the batch (`conv3d_same`); the strided
+2x2x2 "pool" is a space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul
+and a depth-to-space reshape. On GPU/TPU backends the native convolution is used.
 
 `Conv3D.compute_dtype` ("float32" or "bfloat16", set for a whole model by `set_compute_dtype`)
 is the precision of the convolution itself: input and kernel are cast to it and the result cast
@@ -36,6 +36,17 @@ _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
 # Inputs smaller than this (elements) use XLA's 3D convolution: fast enough there, and it
 # compiles to fewer operations.
 SLICED_CONV_MIN_SIZE = 1 << 18
+# ... and so do inputs of at least this many channels. The sliced form holds one copy of its input
+# per depth tap for the kernel gradient, and its backward pass makes as many input gradients and
+# transposed copies: at the paper's widths that doubled the phase-1 step's temporaries (39 GiB
+# against 18.5 GiB at B=3, T=10, G=64, C=128, K=28), and there XLA's CPU 3D convolution is as
+# fast (1.7x faster at 64 channels on 64^3; docs/performance.md, "Memory at paper scale").
+SLICED_CONV_MAX_CHANNELS = 32
+# Thin inputs (k * channels up to this) stack their k depth taps on the channel axis: one 2D
+# convolution with a k-times deeper kernel, one weight gradient instead of k (the FeatureNet stem
+# at G=64 kept five 1 GiB transposed gradients alive), and 1.3-1.9x faster on CPU than one 2D
+# convolution per tap at the cpu preset's 1-4 channels; at 8-16 channels it is slower.
+STACKED_TAPS_MAX_CHANNELS = 15
 _NHWC = ("NHWC", "HWIO", "NHWC")
 COMPUTE_DTYPES = ("float32", "bfloat16")
 # G / g: f_feat pools twice (4) or once (2) before the hourglass; f_dec upsamples as often.
@@ -66,22 +77,31 @@ def in_compute_dtype(name: str, *arrays: jax.Array) -> tuple[jax.Array, ...]:
 def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
     """Stride-1 'SAME' 3D convolution (cross-correlation) of x (B,X,Y,Z,Ci) with (k,k,k,Ci,Co).
 
-    Odd k only. On CPU, for inputs of at least `SLICED_CONV_MIN_SIZE` elements: sum over the k
-    offsets along X of 2D convolutions over (Y, Z), with X folded into the batch axis (a fixed
-    loop over kernel taps, not over data).
+    Odd k only. On CPU, for inputs of at least `SLICED_CONV_MIN_SIZE` elements and fewer than
+    `SLICED_CONV_MAX_CHANNELS` channels, 2D convolutions over (Y, Z) with X folded into the batch
+    axis, one per offset a along X of the shifted planes x[:, a : a + X] (a fixed loop over kernel
+    taps, not over data), summed; with k * Ci <= `STACKED_TAPS_MAX_CHANNELS` the k shifted planes
+    are concatenated on the channel axis into a single 2D convolution instead. Otherwise XLA's
+    native 3D convolution.
     """
     k = kernel.shape[0]
     if k % 2 == 0:
         raise ValueError(f"conv3d_same needs an odd kernel size, got {k}")
-    if jax.default_backend() != "cpu" or x.size < SLICED_CONV_MIN_SIZE:
-        return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
     b, nx, ny, nz, ci = x.shape
+    native = jax.default_backend() != "cpu" or x.size < SLICED_CONV_MIN_SIZE
+    if native or ci >= SLICED_CONV_MAX_CHANNELS:
+        return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
     p = k // 2
     padded = jnp.pad(x, ((0, 0), (p, p), (p, p), (p, p), (0, 0)))
+    planes = [padded[:, a : a + nx] for a in range(k)]  # (B, X, Y + 2p, Z + 2p, Ci) each
+    kernels = list(kernel)  # (k, k, Ci, Co) each
+    if k * ci <= STACKED_TAPS_MAX_CHANNELS:
+        planes = [jnp.concatenate(planes, axis=-1)]  # channel a * Ci + c is tap a, channel c
+        kernels = [jnp.moveaxis(kernel, 0, 2).reshape(k, k, k * ci, -1)]
     out = None
-    for a in range(k):
-        plane = padded[:, a : a + nx].reshape(b * nx, ny + 2 * p, nz + 2 * p, ci)
-        y = jax.lax.conv_general_dilated(plane, kernel[a], (1, 1), "VALID", dimension_numbers=_NHWC)
+    for plane, w in zip(planes, kernels, strict=True):
+        plane = plane.reshape(b * nx, ny + 2 * p, nz + 2 * p, plane.shape[-1])
+        y = jax.lax.conv_general_dilated(plane, w, (1, 1), "VALID", dimension_numbers=_NHWC)
         out = y if out is None else out + y
     return out.reshape(b, nx, ny, nz, kernel.shape[-1])
 

@@ -1,0 +1,105 @@
+"""Memory of the phase-1 train step without running it: compile only, report memory_analysis().
+
+    JAX_PLATFORMS=cpu .venv/bin/python experiments/step_memory.py --preset default \
+        --data synth-hand --conv chosen per_tap native
+
+For each 3D-convolution form, the compiled step's temporary / argument / output bytes at the
+preset's shapes (B, T and anything else through --set), e.g. the paper's B=3, T=10, G=64, C=128,
+K=28, whose step needs more memory than a development machine has. `--conv` picks how
+`blocks.conv3d_same` evaluates stride-1 convolutions on CPU:
+
+- chosen: the code's rule (taps stacked for thin inputs, one 2D conv per tap up to
+  SLICED_CONV_MAX_CHANNELS, native above);
+- per_tap: one 2D convolution per depth tap for every input of SLICED_CONV_MIN_SIZE elements or
+  more, whatever its width (the rule before SLICED_CONV_MAX_CHANNELS existed);
+- native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
+
+Writes nothing; prints one line per form (add --out FILE.json for the numbers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import jax
+import jax.numpy as jnp
+
+from nmjax import io
+from nmjax.bench import environment
+from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
+from nmjax.models import blocks
+from nmjax.train import parallel, skel
+
+FORMS = {
+    # (SLICED_CONV_MIN_SIZE, SLICED_CONV_MAX_CHANNELS, STACKED_TAPS_MAX_CHANNELS)
+    "chosen": (
+        blocks.SLICED_CONV_MIN_SIZE,
+        blocks.SLICED_CONV_MAX_CHANNELS,
+        blocks.STACKED_TAPS_MAX_CHANNELS,
+    ),
+    "per_tap": (blocks.SLICED_CONV_MIN_SIZE, 1 << 30, 0),
+    "native": (1 << 62, 0, 0),
+}
+
+
+def step_memory(cfg, form: str) -> dict:
+    """Compile time and memory_analysis() bytes of the phase-1 train step of `cfg`."""
+    (
+        blocks.SLICED_CONV_MIN_SIZE,
+        blocks.SLICED_CONV_MAX_CHANNELS,
+        blocks.STACKED_TAPS_MAX_CHANNELS,
+    ) = FORMS[form]  # read while tracing, below
+    skel.check_config(cfg)
+    graphdef, state = skel.build(cfg)
+    steps = skel.Steps(graphdef, cfg, parallel.data_mesh())
+    g = cfg.model.grid
+    voxels = jax.ShapeDtypeStruct((cfg.data.batch_size, cfg.data.frames, g, g, g), jnp.float32)
+    tic = time.perf_counter()
+    compiled = steps.train.lower(state, voxels).compile()
+    seconds = time.perf_counter() - tic
+    analysis = compiled.memory_analysis()
+    return {
+        "conv": form,
+        "B": cfg.data.batch_size,
+        "T": cfg.data.frames,
+        "G": g,
+        "C": cfg.model.channels,
+        "K": cfg.model.num_keypoints,
+        "compute_dtype": cfg.model.compute_dtype,
+        "compile_s": seconds,
+        "temp_bytes": int(analysis.temp_size_in_bytes),
+        "argument_bytes": int(analysis.argument_size_in_bytes),
+        "output_bytes": int(analysis.output_size_in_bytes),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="default", choices=PRESETS)
+    parser.add_argument("--data", default="synth-hand")
+    parser.add_argument("--conv", nargs="+", default=list(FORMS), choices=list(FORMS))
+    add_override_argument(parser, "config override, e.g. data.batch_size=1")
+    parser.add_argument("--out", default=None, help="write the rows as JSON here")
+    args = parser.parse_args()
+    cfg = apply_overrides(skel_preset(args.data, args.preset), args.overrides)
+    env = environment()
+    print(" ".join(f"{k}={v}" for k, v in env.items()))
+    rows = []
+    for form in args.conv:
+        row = step_memory(cfg, form)
+        rows.append(row)
+        print(
+            f"conv={form:<8} B={row['B']} T={row['T']} G={row['G']} C={row['C']} K={row['K']} "
+            f"temp {row['temp_bytes']:,} bytes ({row['temp_bytes'] / 2**30:.2f} GiB), "
+            f"arguments {row['argument_bytes'] / 2**30:.2f} GiB, outputs "
+            f"{row['output_bytes'] / 2**30:.2f} GiB, compiled in {row['compile_s']:.0f} s",
+            flush=True,
+        )
+    if args.out is not None:
+        io.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

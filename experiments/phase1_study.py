@@ -92,7 +92,7 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
         data=dataclasses.replace(cfg.data, seed=seed),
     )
     if variant.sequences is not None:
-        root = dataset_root(f"{data}-n{variant.sequences}-seed1")
+        root = dataset_root(data).parent / f"{data}-n{variant.sequences}-seed1"
         if not synthetic.is_complete(root):
             synthetic.generate(data, root, num_sequences=variant.sequences, seed=1)
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root)))

@@ -182,8 +182,9 @@ def write_report(rows: list[dict]) -> None:
         "# Phase-1 study at CPU scale",
         "",
         "Made by `experiments/phase1_study.py` (the command of each row below). Every variant "
-        "trains from the `cpu` preset for a fixed wall-clock budget (`time_limit_minutes`) and "
-        "is scored on the standard test split of its body (`nmjax.evaluate.evaluate_phase1`, up "
+        "trains from the `cpu` preset for a fixed budget (column budget: wall-clock minutes "
+        "through `time_limit_minutes`, or a step count where the cores were shared) and is "
+        "scored on the standard test split of its body (`nmjax.evaluate.evaluate_phase1`, up "
         "to 8 crops per test sequence). SC: Eq. 21 as published (per-frame alpha >= 0.2); SC "
         "fixed: the pruned skeleton's node set; CD: 4D-tracking Chamfer x1e4; bone var: std / "
         "mean of each bone's length over a crop, mean over bones and crops; nodes: kept / K; "

@@ -114,6 +114,9 @@ def test_bone_length_variation_hand_cases():
     # Only the root kept: no bone, nan.
     faint[:, 1, 3] = 0.1
     assert np.isnan(float(metrics.bone_length_variation(faint, parents)))
+    # A given node set replaces the intensity threshold: all three kept, as in the first case.
+    kept = np.ones(3, bool)
+    assert float(metrics.bone_length_variation(faint, parents, kept=kept)) == pytest.approx(0.25)
     # Rigid motion of the whole body (rotation + translation per frame) scores 0.
     rng = np.random.default_rng(0)
     rest = rng.normal(size=(5, 3))

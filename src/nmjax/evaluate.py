@@ -521,17 +521,11 @@ def generated_futures(
     return np.asarray(keypoints)[:, :, x_cond.shape[1] :]
 
 
-def _with_node_intensity(clips: np.ndarray, kept: np.ndarray) -> jax.Array:
-    """The clips with alpha set to 1 on the kept nodes and 0 elsewhere, so that
-    `bone_length_variation` (alpha_min 0.5) measures the bones of the run's pruned skeleton
-    whatever intensities the model generates."""
-    alpha = np.broadcast_to(kept.astype(np.float32), clips.shape[:-1])[..., None]
-    return jnp.concatenate([jnp.asarray(clips[..., :3]), jnp.asarray(alpha)], axis=-1)
-
-
 @jax.jit
-def _bone_error(clips, parents):  # (B, S, N, K, 4) -> (B,), one value per conditioning clip
-    return jax.vmap(lambda x: metrics.bone_length_variation(x, parents, alpha_min=0.5))(clips)
+def _bone_error(clips, parents, kept):  # (B, S, N, K, 4) -> (B,), one value per conditioning clip
+    """`bone_length_variation` on the bones of the run's pruned skeleton (`kept` nodes), whatever
+    intensities the model generates."""
+    return jax.vmap(lambda x: metrics.bone_length_variation(x, parents, kept=kept))(clips)
 
 
 _diversity = jax.jit(metrics.diversity)
@@ -572,7 +566,7 @@ def generation_measures(
     if s >= 2:
         out["diversity"] = summarize(_floats(_diversity(jnp.asarray(futures), mask)))
     out["set_diversity"] = summarize(_floats(_set_diversity(jnp.asarray(futures), mask)))
-    bones = _bone_error(_with_node_intensity(futures, kept), jnp.asarray(parents))
+    bones = _bone_error(jnp.asarray(futures), jnp.asarray(parents), jnp.asarray(kept))
     out["bone_error"] = summarize(_floats(bones))
     if len(real) == 0:
         out["set_distance"] = {
@@ -608,7 +602,7 @@ def real_reference(real: np.ndarray, parents: np.ndarray, kept: np.ndarray) -> d
         "clips": int(len(real)),
         "set_diversity": summarize(_floats(_set_diversity(jnp.asarray(clips), mask))),
         "bone_error": summarize(
-            _floats(_bone_error(_with_node_intensity(clips, kept), jnp.asarray(parents)))
+            _floats(_bone_error(jnp.asarray(clips), jnp.asarray(parents), jnp.asarray(kept)))
         ),
     }
 

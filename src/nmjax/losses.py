@@ -299,9 +299,9 @@ def trajectory_cost(
     mu = keypoints[..., :3]
     vel = mu[..., 1:, :, :] - mu[..., :-1, :, :]
     acc = vel[..., 1:, :, :] - vel[..., :-1, :, :]
-    half = 4.0 if printed_scale else 2.0
-    c_vel = (1.0 - _cosine(vel, vel)) / half  # (..., T-1, K, K)
-    c_acc = (1.0 - _cosine(acc, acc)) / half  # (..., T-2, K, K)
+    divisor = 4.0 if printed_scale else 2.0
+    c_vel = (1.0 - _cosine(vel, vel)) / divisor  # (..., T-1, K, K)
+    c_acc = (1.0 - _cosine(acc, acc)) / divisor  # (..., T-2, K, K)
     if intensity_weighted:
         alpha = keypoints[..., 3]
         w_vel = (alpha[..., 1:, :] + alpha[..., :-1, :]) / 2

@@ -214,22 +214,28 @@ def bone_lengths(keypoints: Array, parents: Array) -> Array:
 
 
 def bone_length_variation(
-    keypoints: Array, parents: Array, alpha_min: float = 0.2, eps: float = 1e-8
+    keypoints: Array,
+    parents: Array,
+    alpha_min: float = 0.2,
+    eps: float = 1e-8,
+    kept: Array | None = None,
 ) -> Array:
     """Bone-length variation E_b (DESIGN §9): for every bone between kept nodes, the standard
     deviation over time of its length divided by its mean length, averaged over the bones and
     the sequences. 0 for a rigid skeleton whose bones keep their length.
 
     The kept nodes are the keypoints whose mean alpha over all the given frames is >=
-    `alpha_min`; a bone (k, parent(k)) counts when both ends are kept. Pass the pruned tree
-    (`skeleton.prune`, children re-attached to their nearest kept ancestor) to measure the bones
-    of the pruned skeleton.
+    `alpha_min`, unless `kept` gives the node set (e.g. a run's pruned skeleton, whatever
+    intensities generated motion carries); a bone (k, parent(k)) counts when both ends are kept.
+    Pass the pruned tree (`skeleton.prune`, children re-attached to their nearest kept ancestor)
+    to measure the bones of the pruned skeleton.
 
     Args:
         keypoints: (S, T, K, 4) sequences of keypoints, or one (T, K, 4) sequence; T >= 2.
         parents: (K,) int parents of the skeleton (the root is its own parent).
         alpha_min: node threshold on the mean intensity (0 keeps every keypoint).
         eps: added to the mean length (a bone of length 0 scores 0, not nan).
+        kept: optional (K,) bool node set used instead of the mean-alpha threshold.
 
     Returns:
         scalar; nan when the skeleton has no bone between kept nodes.
@@ -247,8 +253,9 @@ def bone_length_variation(
         )
     lengths = bone_lengths(kp, parents)  # (S, T, K)
     cv = jnp.std(lengths, axis=1) / (jnp.mean(lengths, axis=1) + eps)  # (S, K)
-    mean_alpha = jnp.mean(kp[..., 3], axis=(0, 1))  # (K,)
-    kept = mean_alpha >= alpha_min
+    if kept is None:
+        kept = jnp.mean(kp[..., 3], axis=(0, 1)) >= alpha_min  # (K,)
+    kept = jnp.asarray(kept, bool)
     bone = kept & kept[parents] & (parents != jnp.arange(kp.shape[-2]))  # (K,)
     n = jnp.sum(bone) * kp.shape[0]
     total = jnp.sum(jnp.where(bone[None], cv, 0.0))

@@ -377,12 +377,12 @@ def _find_cycle(parents: np.ndarray, root: int) -> list[int] | None:
     return None
 
 
-def tree_order(parents: np.ndarray, lengths: np.ndarray, root: int) -> np.ndarray:
+def tree_order(skeleton: Skeleton, lengths: np.ndarray) -> np.ndarray:
     """DESIGN §7 step 8: nodes sorted (stably) by their distance from the root along the tree,
     each tree edge as long as in `lengths` (1 for an edge that A^bin lacks)."""
-    dist = np.full(len(parents), np.nan)
-    dist[root] = 0.0
-    for k in skeleton_from_parents(parents).order[1:]:  # parents first
+    parents = skeleton.parents
+    dist = np.zeros(skeleton.num_keypoints)
+    for k in skeleton.order[1:]:  # parents first
         edge = lengths[k, parents[k]]
         dist[k] = dist[parents[k]] + (edge if edge > 0 else 1.0)
     return np.argsort(dist, kind="stable")
@@ -509,8 +509,8 @@ def extract_skeleton(
     lengths = tie_break_lengths(a, bin_, hops)
     dist = shortest_paths(lengths)
     root = int(np.argmin(dist.sum(axis=1)))
-    parents = algorithm1_parents(a, bin_, dist[root], root)
-    return skeleton_from_parents(parents, tree_order(parents, lengths, root))
+    tree = skeleton_from_parents(algorithm1_parents(a, bin_, dist[root], root))
+    return dataclasses.replace(tree, order=tuple(int(k) for k in tree_order(tree, lengths)))
 
 
 def prune(

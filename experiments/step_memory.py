@@ -1,17 +1,16 @@
 """Memory of the phase-1 train step without running it: compile only, report memory_analysis().
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/step_memory.py --preset default \
-        --data synth-hand --conv chosen per_tap native
+        --data synth-hand --conv auto per_tap native
 
 For each 3D-convolution form, the compiled step's temporary / argument / output bytes at the
 preset's shapes (B, T and anything else through --set), e.g. the paper's B=3, T=10, G=64, C=128,
 K=28, whose step needs more memory than a development machine has. `--conv` picks how
 `blocks.conv3d_same` evaluates stride-1 convolutions on CPU:
 
-- chosen: the code's rule (taps stacked for thin inputs, one 2D conv per tap up to
-  SLICED_CONV_MAX_CHANNELS, native above);
-- per_tap: one 2D convolution per depth tap for every input of SLICED_CONV_MIN_SIZE elements or
-  more, whatever its width (the rule before SLICED_CONV_MAX_CHANNELS existed);
+- auto: the code's choice (on CPU: taps stacked for thin inputs, one 2D convolution per tap
+  otherwise);
+- per_tap: one 2D convolution per depth tap for every input, whatever its width;
 - native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
 
 Writes nothing; prints one line per form (add --out FILE.json for the numbers).
@@ -24,6 +23,7 @@ import time
 
 import jax
 import jax.numpy as jnp
+from flax import nnx
 
 from nmjax import io
 from nmjax.bench import environment
@@ -31,27 +31,16 @@ from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_p
 from nmjax.models import blocks
 from nmjax.train import parallel, skel
 
-FORMS = {
-    # (SLICED_CONV_MIN_SIZE, SLICED_CONV_MAX_CHANNELS, STACKED_TAPS_MAX_CHANNELS)
-    "chosen": (
-        blocks.SLICED_CONV_MIN_SIZE,
-        blocks.SLICED_CONV_MAX_CHANNELS,
-        blocks.STACKED_TAPS_MAX_CHANNELS,
-    ),
-    "per_tap": (blocks.SLICED_CONV_MIN_SIZE, 1 << 30, 0),
-    "native": (1 << 62, 0, 0),
-}
+FORMS = ("auto", "per_tap", "native")
 
 
 def step_memory(cfg, form: str) -> dict:
-    """Compile time and memory_analysis() bytes of the phase-1 train step of `cfg`."""
-    (
-        blocks.SLICED_CONV_MIN_SIZE,
-        blocks.SLICED_CONV_MAX_CHANNELS,
-        blocks.STACKED_TAPS_MAX_CHANNELS,
-    ) = FORMS[form]  # read while tracing, below
+    """Compile time and memory_analysis() bytes of the phase-1 train step of `cfg`, every
+    stride-1 convolution in `form` (`blocks.conv3d_same`)."""
     skel.check_config(cfg)
-    graphdef, state = skel.build(cfg)
+    model, optimizer = nnx.merge(*skel.build(cfg))
+    blocks.set_conv_form(model, form)  # a static attribute: it lives in the graphdef
+    graphdef, state = nnx.split((model, optimizer))
     steps = skel.Steps(graphdef, cfg, parallel.data_mesh())
     g = cfg.model.grid
     voxels = jax.ShapeDtypeStruct((cfg.data.batch_size, cfg.data.frames, g, g, g), jnp.float32)
@@ -78,7 +67,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="default", choices=PRESETS)
     parser.add_argument("--data", default="synth-hand")
-    parser.add_argument("--conv", nargs="+", default=list(FORMS), choices=list(FORMS))
+    parser.add_argument("--conv", nargs="+", default=list(FORMS), choices=FORMS)
     add_override_argument(parser, "config override, e.g. data.batch_size=1")
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
     args = parser.parse_args()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
+import os
 
 import jax
 import jax.numpy as jnp
@@ -31,20 +33,8 @@ def _reference_conv_same(x, w):
     return out
 
 
-def _force_conv_form(monkeypatch, form: str) -> None:
-    """Makes `blocks.conv3d_same` take `form` ("native", "per_tap", "stacked") for any input."""
-    if form == "native":
-        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 1 << 62)
-        return
-    monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
-    monkeypatch.setattr(blocks, "SLICED_CONV_MAX_CHANNELS", 1 << 30)
-    monkeypatch.setattr(blocks, "STACKED_TAPS_MAX_CHANNELS", 1 << 30 if form == "stacked" else 0)
-
-
 def _jaxpr(fn, *args) -> str:
-    # A fresh function each time: make_jaxpr caches traces per function, and the form is chosen
-    # from module attributes while tracing.
-    return str(jax.make_jaxpr(lambda *a: fn(*a))(*args))
+    return str(jax.make_jaxpr(fn)(*args))
 
 
 def _conv_count(fn, *args) -> int:
@@ -53,9 +43,9 @@ def _conv_count(fn, *args) -> int:
 
 @pytest.mark.parametrize("kernel", [1, 3, 5])
 @pytest.mark.parametrize("form", ["native", "per_tap", "stacked"])
-def test_conv3d_same_matches_numpy(kernel, form, monkeypatch):
-    _force_conv_form(monkeypatch, form)
+def test_conv3d_same_matches_numpy(kernel, form):
     conv = blocks.Conv3D(2, 3, kernel, rngs=nnx.Rngs(0))
+    blocks.set_conv_form(conv, form)
     conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
     x = np.random.default_rng(1).normal(size=(2, 6, 5, 4, 2)).astype(np.float32)
     expected = _reference_conv_same(x, np.asarray(conv.kernel[...])) + [0.5, -1.0, 2.0]
@@ -63,44 +53,75 @@ def test_conv3d_same_matches_numpy(kernel, form, monkeypatch):
 
 
 @pytest.mark.parametrize("kernel", [3, 5])
-def test_conv3d_same_forms_agree_in_value_and_gradient(kernel, monkeypatch):
+def test_conv3d_same_forms_agree_in_value_and_gradient(kernel):
     rng = np.random.default_rng(4)
     x = jnp.asarray(rng.normal(size=(2, 6, 5, 4, 3)), jnp.float32)
     w = jnp.asarray(rng.normal(size=(kernel, kernel, kernel, 3, 4)), jnp.float32)
     cotangent = jnp.asarray(rng.normal(size=(2, 6, 5, 4, 4)), jnp.float32)
 
-    def loss(x, w):
-        return jnp.sum(blocks.conv3d_same(x, w) * cotangent)
+    def loss(x, w, form):
+        return jnp.sum(blocks.conv3d_same(x, w, form) * cotangent)
 
     results = {}
     for form, convs in (("native", 1), ("per_tap", kernel), ("stacked", 1)):
-        _force_conv_form(monkeypatch, form)
-        assert _conv_count(blocks.conv3d_same, x, w) == convs, form
-        results[form] = (blocks.conv3d_same(x, w), *jax.grad(loss, argnums=(0, 1))(x, w))
+        conv = functools.partial(blocks.conv3d_same, form=form)
+        assert _conv_count(conv, x, w) == convs, form
+        grads = jax.grad(loss, argnums=(0, 1))(x, w, form)
+        results[form] = (conv(x, w), *grads)
     for form in ("per_tap", "stacked"):
         for got, want in zip(results[form], results["native"], strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4, err_msg=form)
 
 
-def test_conv3d_same_chooses_its_form_by_width_on_cpu(monkeypatch):
-    monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", 0)
+def test_conv3d_same_chooses_its_form_by_width_on_cpu():
     rng = np.random.default_rng(5)
     k = 3
-    for ci, convs, dims in (
-        (blocks.STACKED_TAPS_MAX_CHANNELS // k, 1, 2),  # thin: taps stacked into one 2D conv
-        (blocks.STACKED_TAPS_MAX_CHANNELS // k + 1, k, 2),  # one 2D conv per tap
-        (blocks.SLICED_CONV_MAX_CHANNELS, 1, 3),  # wide: XLA's 3D convolution
+    for ci, convs in (
+        (1, 1),  # the stem: taps stacked into one 2D conv
+        (blocks.STACKED_TAPS_MAX_CHANNELS // k, 1),  # still stacked
+        (blocks.STACKED_TAPS_MAX_CHANNELS // k + 1, k),  # one 2D conv per tap
+        (128, k),  # the paper's widths: per tap too, never XLA's 3D convolution on CPU
     ):
         x = jnp.zeros((1, 4, 4, 4, ci), jnp.float32)
         w = jnp.asarray(rng.normal(size=(k, k, k, ci, 2)), jnp.float32)
         jaxpr = _jaxpr(blocks.conv3d_same, x, w)
         assert jaxpr.count("conv_general_dilated") == convs, ci
-        assert jaxpr.count(f"window_strides=({', '.join(['1'] * dims)})") == convs, ci
+        assert jaxpr.count("window_strides=(1, 1)") == convs, ci  # 2D convolutions only
 
 
-def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms(monkeypatch):
-    """The whole phase-1 loss and its gradient with every big-enough conv sliced (per tap),
-    against the code's width-dependent choice made to cover all three forms on tiny shapes."""
+def test_conv_form_rejects_unknown_names():
+    x, w = jnp.zeros((1, 4, 4, 4, 1)), jnp.zeros((3, 3, 3, 1, 1))
+    with pytest.raises(ValueError, match="form must be one of"):
+        blocks.conv3d_same(x, w, "sliced")
+    with pytest.raises(ValueError, match="conv form must be one of"):
+        blocks.set_conv_form(blocks.Conv3D(1, 1, 3, rngs=nnx.Rngs(0)), "fast")
+
+
+@pytest.mark.parametrize("n, k", [(4, 3), (8, 5), (6, 1)])
+def test_coord_conv_matches_the_convolution_of_the_coordinate_grid(n, k):
+    """The closed form of the stem's coordinate channels equals convolving coord_grid, in value
+    and in the kernel gradient (it is what FeatureNet adds to every sample)."""
+    from nmjax.keypoints import coord_grid
+
+    rng = np.random.default_rng(8)
+    w = jnp.asarray(rng.normal(size=(k, k, k, 3, 4)), jnp.float32)
+    cot = jnp.asarray(rng.normal(size=(n, n, n, 4)), jnp.float32)
+
+    def closed(w):
+        return blocks.coord_conv3d_same(w, n)
+
+    def conv(w):
+        return blocks.conv3d_same(coord_grid(n)[None], w, "native")[0]
+
+    np.testing.assert_allclose(closed(w), conv(w), rtol=1e-5, atol=1e-5)
+    g_closed = jax.grad(lambda w: jnp.sum(closed(w) * cot))(w)
+    g_conv = jax.grad(lambda w: jnp.sum(conv(w) * cot))(w)
+    np.testing.assert_allclose(g_closed, g_conv, rtol=1e-5, atol=1e-4)
+
+
+def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms():
+    """The whole phase-1 loss and its gradient with XLA's 3D convolution everywhere, against the
+    code's CPU choice (taps stacked for the thin stem, one 2D convolution per tap elsewhere)."""
     from nmjax import losses
 
     cfg = skel_preset("synth-arm", "tiny")
@@ -109,23 +130,19 @@ def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms(monkeypatch
     )
     rng = np.random.default_rng(6)
     voxels = jnp.asarray(rng.random((1, 3, 8, 8, 8)) > 0.7, jnp.float32)
-    graphdef, params = nnx.split(KeypointDetector(model_cfg, rngs=nnx.Rngs(0)))
+    model = KeypointDetector(model_cfg, rngs=nnx.Rngs(0))
 
-    def loss(params):
-        return losses.skeleton_loss(nnx.merge(graphdef, params)(voxels), cfg.weights)[0]
+    def value_and_grad(form):
+        blocks.set_conv_form(model, form)  # a static attribute: it lives in the graphdef
+        graphdef, params = nnx.split(model)
 
-    results = {}
-    for name, min_size, max_channels, stacked in (
-        ("per_tap", 0, 1 << 30, 0),
-        # widths 1..8 here: the stem stacked, its coordinates (3 channels, k=5) per tap, 4 and
-        # more channels native
-        ("chosen", 0, 4, 6),
-    ):
-        monkeypatch.setattr(blocks, "SLICED_CONV_MIN_SIZE", min_size)
-        monkeypatch.setattr(blocks, "SLICED_CONV_MAX_CHANNELS", max_channels)
-        monkeypatch.setattr(blocks, "STACKED_TAPS_MAX_CHANNELS", stacked)
-        results[name] = jax.value_and_grad(loss)(params)
-    (v0, g0), (v1, g1) = results["per_tap"], results["chosen"]
+        def loss(params):
+            return losses.skeleton_loss(nnx.merge(graphdef, params)(voxels), cfg.weights)[0]
+
+        return jax.value_and_grad(loss)(params)
+
+    results = {form: value_and_grad(form) for form in ("native", "auto")}
+    (v0, g0), (v1, g1) = results["native"], results["auto"]
     assert float(v1) == pytest.approx(float(v0), rel=1e-5)
     leaves0, leaves1 = jax.tree.leaves(g0), jax.tree.leaves(g1)
     norm = np.sqrt(sum(float(jnp.sum(a**2)) for a in leaves0))
@@ -285,3 +302,26 @@ def test_detector_rejects_wrong_voxel_shape(tiny_outputs):
     _, model, voxels, _ = tiny_outputs
     with pytest.raises(ValueError, match="expected voxels"):
         model(voxels[..., :-1])
+
+
+def test_cpu_convolution_gradients_do_not_go_through_ynnpack():
+    """nmjax switches YNNPACK's convolutions off (nmjax/__init__.py): its kernel gradients were
+    3-4x slower than XLA's for the detector's thin convolutions. The compiled kernel gradient
+    must hold no convolution inside a YNNPACK fusion."""
+    import re
+
+    import nmjax
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("a CPU backend option")
+    assert nmjax.YNN_CONVOLUTION_FLAG in os.environ["XLA_FLAGS"]
+    x, w = jnp.ones((2, 16, 16, 16, 4)), jnp.ones((3, 3, 3, 4, 4))
+    text = jax.jit(jax.grad(lambda w: jnp.sum(blocks.conv3d_same(x, w)))).lower(w).compile()
+    text = text.as_text()
+    assert "convolution(" in text
+    ynn = re.findall(
+        r"calls=%([\w.\-]+), backend_config=\{\"fusion_config\":\{\"kind\":\"__ynn", text
+    )
+    for name in ynn:
+        body = text[text.index(f"%{name} ") :].split("\n}", 1)[0]
+        assert "convolution(" not in body, name

@@ -484,18 +484,11 @@ def plain_conv3d(x: jax.Array, kernel: jax.Array) -> jax.Array:
 
 
 def fast_conv3d(x: jax.Array, kernel: jax.Array) -> jax.Array:
-    """`blocks.conv3d_same` with the sliced (2D-convolution) form forced for every size and width
-    (taps stacked on the channels when the input is thin); on non-CPU backends conv3d_same always
-    uses the native convolution."""
+    """`blocks.conv3d_same` in the form the code chooses on CPU (2D convolutions: taps stacked on
+    the channels for thin inputs, one per tap otherwise), whatever the backend."""
     from nmjax.models import blocks
 
-    saved = blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS
-    # read while tracing
-    blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS = 0, x.shape[-1] + 1
-    try:
-        return blocks.conv3d_same(x, kernel)
-    finally:
-        blocks.SLICED_CONV_MIN_SIZE, blocks.SLICED_CONV_MAX_CHANNELS = saved
+    return blocks.conv3d_same(x, kernel, blocks.cpu_conv_form(x.shape, kernel.shape[0]))
 
 
 def plain_stem(voxels: jax.Array, kernel: jax.Array) -> jax.Array:
@@ -510,18 +503,16 @@ def plain_stem(voxels: jax.Array, kernel: jax.Array) -> jax.Array:
     from nmjax.keypoints import add_coord_channels
     from nmjax.models.blocks import conv3d_same
 
-    return conv3d_same(add_coord_channels(voxels[..., None]), kernel)
+    return conv3d_same(add_coord_channels(voxels[..., None]), kernel, "native")
 
 
 def fast_stem(voxels: jax.Array, kernel: jax.Array) -> jax.Array:
-    """The FeatureNet stem as in the code: the coordinate channels convolved once, broadcast."""
-    from nmjax.keypoints import coord_grid
-    from nmjax.models.blocks import conv3d_same
+    """The FeatureNet stem as in the code: the occupancy convolved per sample, the coordinate
+    channels' convolution in closed form once (`blocks.coord_conv3d_same`) and broadcast."""
+    from nmjax.models.blocks import conv3d_same, coord_conv3d_same
 
-    coords = coord_grid(voxels.shape[1])[None]
-    return conv3d_same(voxels[..., None], kernel[..., :1, :]) + conv3d_same(
-        coords, kernel[..., 1:, :]
-    )
+    coords = coord_conv3d_same(kernel[..., 1:, :], voxels.shape[1])
+    return conv3d_same(voxels[..., None], kernel[..., :1, :]) + coords
 
 
 def plain_gaussian_maps(keypoints: jax.Array, sigma: float, n: int) -> jax.Array:
@@ -565,7 +556,6 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     """The cases (a)-(d) on the shapes of `skel_preset(data, preset)`; `batch` overrides B*T."""
     from flax import nnx
 
-    from nmjax.models import blocks
     from nmjax.models.detector import VoxelDecoder
 
     cfg = skel_preset(data, preset)
@@ -610,8 +600,6 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
         ("decoder first at G", big, c2, c4, 3),
         ("feature res1", big // 2, c4, c2, 3),
     ):
-        sliced = bt * n**3 * ci >= blocks.SLICED_CONV_MIN_SIZE
-        sliced = sliced and ci < blocks.SLICED_CONV_MAX_CHANNELS
         cases.append(
             Case(
                 f"(b) sliced 3D conv: {label}",
@@ -619,7 +607,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 plain_conv3d,
                 fast_conv3d,
                 (normal(bt, n, n, n, ci), normal(ks, ks, ks, ci, co, scale=0.1)),
-                applies=on_cpu and sliced,
+                applies=on_cpu,
             )
         )
     cases.append(

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax.keypoints import coord_grid
+from nmjax.keypoints import axis_coords
 
 LEAK = 0.2  # LeakyReLU slope
 
@@ -33,20 +33,16 @@ def num_groups(channels: int) -> int:
 
 
 _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
-# Inputs smaller than this (elements) use XLA's 3D convolution: fast enough there, and it
-# compiles to fewer operations.
-SLICED_CONV_MIN_SIZE = 1 << 18
-# ... and so do inputs of at least this many channels. The sliced form holds one copy of its input
-# per depth tap for the kernel gradient, and its backward pass makes as many input gradients and
-# transposed copies: at the paper's widths that doubled the phase-1 step's temporaries (39 GiB
-# against 18.5 GiB at B=3, T=10, G=64, C=128, K=28), and there XLA's CPU 3D convolution is as
-# fast (1.7x faster at 64 channels on 64^3; docs/performance.md, "Memory at paper scale").
-SLICED_CONV_MAX_CHANNELS = 32
+# On CPU, stride-1 convolutions run as 2D convolutions over (Y, Z) with X folded into the batch
+# axis: with YNNPACK's convolutions switched off (nmjax/__init__.py), XLA's CPU 2D convolution
+# beats its 3D convolution at every shape of the detector, forward + backward, by 2.5-15x (1 to
+# 128 channels, 4^3 to 32^3 grids; docs/performance.md, "CPU convolutions"). The price is memory:
+# the per-tap form keeps k shifted copies of its input for the kernel gradient (about 2x the
+# native form's temporaries at the paper's widths).
 # Thin inputs (k * channels up to this) stack their k depth taps on the channel axis: one 2D
-# convolution with a k-times deeper kernel, one weight gradient instead of k (the FeatureNet stem
-# at G=64 kept five 1 GiB transposed gradients alive), and 1.3-1.9x faster on CPU than one 2D
-# convolution per tap at the cpu preset's 1-4 channels; at 8-16 channels it is slower.
-STACKED_TAPS_MAX_CHANNELS = 15
+# convolution with a k-times deeper kernel and one kernel gradient instead of k, 1.2-2.3x faster
+# than one 2D convolution per tap up to 16 channels at k = 3; at 16 channels the two are even.
+STACKED_TAPS_MAX_CHANNELS = 48
 _NHWC = ("NHWC", "HWIO", "NHWC")
 COMPUTE_DTYPES = ("float32", "bfloat16")
 # G / g: f_feat pools twice (4) or once (2) before the hourglass; f_dec upsamples as often.
@@ -74,28 +70,50 @@ def in_compute_dtype(name: str, *arrays: jax.Array) -> tuple[jax.Array, ...]:
     return tuple(a.astype(jnp.dtype(name)) for a in arrays)
 
 
-def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
+CONV_FORMS = ("auto", "native", "per_tap", "stacked")
+
+
+def conv_form(x_shape: tuple[int, ...], kernel_size: int) -> str:
+    """The form `conv3d_same(form="auto")` takes for an input of `x_shape` (B, X, Y, Z, Ci):
+    "native" on GPU/TPU, `cpu_conv_form` on CPU."""
+    if jax.default_backend() != "cpu":
+        return "native"
+    return cpu_conv_form(x_shape, kernel_size)
+
+
+def cpu_conv_form(x_shape: tuple[int, ...], kernel_size: int) -> str:
+    """The fastest 2D form on CPU: "stacked" when k * Ci <= `STACKED_TAPS_MAX_CHANNELS`, else
+    "per_tap"."""
+    return "stacked" if kernel_size * x_shape[-1] <= STACKED_TAPS_MAX_CHANNELS else "per_tap"
+
+
+def conv3d_same(x: jax.Array, kernel: jax.Array, form: str = "auto") -> jax.Array:
     """Stride-1 'SAME' 3D convolution (cross-correlation) of x (B,X,Y,Z,Ci) with (k,k,k,Ci,Co).
 
-    Odd k only. On CPU, for inputs of at least `SLICED_CONV_MIN_SIZE` elements and fewer than
-    `SLICED_CONV_MAX_CHANNELS` channels, 2D convolutions over (Y, Z) with X folded into the batch
-    axis, one per offset a along X of the shifted planes x[:, a : a + X] (a fixed loop over kernel
-    taps, not over data), summed; with k * Ci <= `STACKED_TAPS_MAX_CHANNELS` the k shifted planes
-    are concatenated on the channel axis into a single 2D convolution instead. Otherwise XLA's
-    native 3D convolution.
+    Odd k only. Every form computes the same function:
+      "native": XLA's 3D convolution.
+      "per_tap": 2D convolutions over (Y, Z) with X folded into the batch axis, one per offset a
+        along X of the shifted planes x[:, a : a + X] (a fixed loop over kernel taps, not over
+        data), summed.
+      "stacked": the k shifted planes concatenated on the channel axis into a single 2D
+        convolution with a k-times deeper kernel.
+      "auto": the fastest of these for the shape on this backend (`conv_form`).
     """
     k = kernel.shape[0]
     if k % 2 == 0:
         raise ValueError(f"conv3d_same needs an odd kernel size, got {k}")
-    b, nx, ny, nz, ci = x.shape
-    native = jax.default_backend() != "cpu" or x.size < SLICED_CONV_MIN_SIZE
-    if native or ci >= SLICED_CONV_MAX_CHANNELS:
+    if form not in CONV_FORMS:
+        raise ValueError(f"conv3d_same: form must be one of {CONV_FORMS}, got {form!r}")
+    if form == "auto":
+        form = conv_form(x.shape, k)
+    if form == "native":
         return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
+    b, nx, ny, nz, ci = x.shape
     p = k // 2
     padded = jnp.pad(x, ((0, 0), (p, p), (p, p), (p, p), (0, 0)))
     planes = [padded[:, a : a + nx] for a in range(k)]  # (B, X, Y + 2p, Z + 2p, Ci) each
     kernels = list(kernel)  # (k, k, Ci, Co) each
-    if k * ci <= STACKED_TAPS_MAX_CHANNELS:
+    if form == "stacked":
         planes = [jnp.concatenate(planes, axis=-1)]  # channel a * Ci + c is tap a, channel c
         kernels = [jnp.moveaxis(kernel, 0, 2).reshape(k, k, k * ci, -1)]
     out = None
@@ -104,6 +122,31 @@ def conv3d_same(x: jax.Array, kernel: jax.Array) -> jax.Array:
         y = jax.lax.conv_general_dilated(plane, w, (1, 1), "VALID", dimension_numbers=_NHWC)
         out = y if out is None else out + y
     return out.reshape(b, nx, ny, nz, kernel.shape[-1])
+
+
+def coord_conv3d_same(kernel: jax.Array, n: int) -> jax.Array:
+    """`conv3d_same(coord_grid(n)[None], kernel)[0]`, (k,k,k,3,Co) -> (n,n,n,Co), in closed form.
+
+    Coordinate channel d is the ramp linspace(-1, 1, n) along axis d and constant along the two
+    others, so with zero padding its convolution is a sum of separable terms:
+    out[x, y, z] = sum_abc w[a, b, c] R_a(x) M_b(y) M_c(z) for d = 0 (and likewise for d = 1, 2),
+    where R_a(x) is the ramp at x + a - k//2 (0 outside the grid) and M_a the same for a constant 1.
+    Three small contractions per channel instead of a 3D convolution over the grid: exact, and
+    in the step's forward and kernel gradient it replaced two convolutions that cost 15% of the
+    cpu preset's phase-1 step.
+    """
+    k = kernel.shape[0]
+    p = k // 2
+    shift = jnp.arange(k)[:, None] + jnp.arange(n)[None, :] - p  # (k, n): cell seen by tap a at x
+    inside = (shift >= 0) & (shift < n)
+    ramp = jnp.where(inside, axis_coords(n)[jnp.clip(shift, 0, n - 1)], 0.0)
+    ones = inside.astype(kernel.dtype)
+    ramp = ramp.astype(kernel.dtype)
+    out = 0.0
+    for d in range(3):  # the three coordinate channels: a fixed loop, not over data
+        fx, fy, fz = (ramp if d == axis else ones for axis in range(3))
+        out = out + jnp.einsum("ax,by,cz,abco->xyzo", fx, fy, fz, kernel[:, :, :, d, :])
+    return out
 
 
 def space_to_depth(x: jax.Array) -> jax.Array:
@@ -170,6 +213,7 @@ class Conv3D(nnx.Module):
         self.kernel = nnx.Param(lecun_normal(rngs.params(), shape))
         self.bias = nnx.Param(jnp.zeros((out_ch,), jnp.float32))
         self.compute_dtype = "float32"
+        self.conv_form = "auto"  # how a stride-1 kernel is evaluated: `conv3d_same`'s `form`
 
     def __call__(self, x: jax.Array) -> jax.Array:
         x, w = in_compute_dtype(self.compute_dtype, x, self.kernel[...])
@@ -181,7 +225,7 @@ class Conv3D(nnx.Module):
         elif self.stride == 2:  # each output cell sees exactly one 2x2x2 block of the input
             y = space_to_depth(x) @ w.reshape(-1, w.shape[-1])
         else:
-            y = conv3d_same(x, w)
+            y = conv3d_same(x, w, self.conv_form)
         return y.astype(jnp.float32) + self.bias[...]
 
 
@@ -191,6 +235,16 @@ def set_compute_dtype(model: nnx.Module, name: str) -> None:
     for _, module in nnx.iter_modules(model):
         if isinstance(module, Conv3D):
             module.compute_dtype = name
+
+
+def set_conv_form(model: nnx.Module, form: str) -> None:
+    """Sets how every stride-1 `Conv3D` inside `model` evaluates its kernel (`conv3d_same`'s
+    `form`: "auto", the default, or "native", "per_tap", "stacked" to compare the forms)."""
+    if form not in CONV_FORMS:
+        raise ValueError(f"conv form must be one of {CONV_FORMS}, got {form!r}")
+    for _, module in nnx.iter_modules(model):
+        if isinstance(module, Conv3D):
+            module.conv_form = form
 
 
 class ConvNormAct(nnx.Module):
@@ -303,8 +357,8 @@ class FeatureNet(nnx.Module):
     CoordConv conv5 on [occupancy, x, y, z] (-> C/4) + GN + LeakyReLU, pool, residual
     (C/4 -> C/2), pool (stride 4 only), hourglass at g, residual (C/2 -> C). The stem is linear
     in its input channels, so the three coordinate channels (identical for every sample) are
-    convolved once and broadcast instead of being concatenated to every sample: the same
-    function, 4x cheaper.
+    convolved once, in closed form (`coord_conv3d_same`), and broadcast instead of being
+    concatenated to every sample: the same function, 4x cheaper.
     """
 
     def __init__(
@@ -328,11 +382,9 @@ class FeatureNet(nnx.Module):
     def __call__(self, voxels: jax.Array) -> jax.Array:
         dtype = self.stem.conv.compute_dtype
         w = self.stem.conv.kernel[...]  # (5, 5, 5, 1 + 3, C/4)
-        coords = coord_grid(voxels.shape[1])[None]  # (1, G, G, G, 3)
-        v, c, wv, wc = in_compute_dtype(
-            dtype, voxels[..., None], coords, w[..., :1, :], w[..., 1:, :]
-        )
-        x = (conv3d_same(v, wv) + conv3d_same(c, wc)).astype(jnp.float32)
+        v, wv, wc = in_compute_dtype(dtype, voxels[..., None], w[..., :1, :], w[..., 1:, :])
+        coords = coord_conv3d_same(wc, voxels.shape[1])  # (G, G, G, C/4), as for every sample
+        x = (conv3d_same(v, wv, self.stem.conv.conv_form) + coords).astype(jnp.float32)
         x = nnx.leaky_relu(self.stem.norm(x + self.stem.conv.bias[...]), LEAK)
         x = self.res1(self.pool1(x))
         if self.pool2 is not None:

@@ -5,17 +5,18 @@ wall-clock budget, scored on the standard test split.
         --variant base --minutes 10 [--seed 0]
     .venv/bin/python experiments/phase1_study.py --report      # rewrite the table only
 
-Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>` with the
-`cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every variant gets
-the same wall time, whatever its step cost; the preset's learning-rate milestones lie beyond a
-short budget, so every variant trains at the constant peak rate), or after `--steps` steps when
-the cores are shared with other work (a wall-clock budget then measures the load, not the
-variant; compare step-budget rows only among variants of equal step cost), then evaluates it with
-`nmjax.evaluate.evaluate_phase1` on the test split of the body's standard set (`data/<data>`
-or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on another set. The row
-(command, change, steps, wall minutes, SC in both definitions, tracking CD, bone-length
-variation, kept nodes) replaces any earlier row of the same (data, variant, seed) in
-`experiments/results/phase1_study.json`, and `phase1_study.md` is rewritten from it.
+Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>-<budget>`
+with the `cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every
+variant gets the same wall time, whatever its step cost; the preset's learning-rate milestones
+lie beyond a short budget, so every variant trains at the constant peak rate), or after `--steps`
+steps when the cores are shared with other work (a wall-clock budget then measures the load, not
+the variant; compare step-budget rows only among variants of equal step cost), then evaluates it
+with `nmjax.evaluate.evaluate_phase1` on the test split of the body's standard set
+(`data/<data>` or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on
+another set. The row (command, change, steps, wall minutes, SC in both definitions, tracking CD,
+bone-length variation, kept nodes, the commit) replaces any earlier row of the same (data,
+variant, seed, budget) in `experiments/results/phase1_study.json`, and `phase1_study.md` is
+rewritten from it.
 
 Variants that train on a bigger synthetic set generate it first (`nmjax.data.synthetic`) with
 another seed than the standard set, so no test motion is among their training sequences.
@@ -28,6 +29,7 @@ import dataclasses
 import json
 import os
 import shlex
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -133,7 +135,8 @@ def run_variant(
     from nmjax.train import skel
 
     cfg = variant_config(data, name, minutes, seed, steps)
-    run = RUNS / f"{data}-{name}-s{seed}"
+    budget = f"{steps} steps" if steps is not None else f"{minutes:g} min"
+    run = RUNS / f"{data}-{name}-s{seed}-{budget.replace(' ', '')}"
     begin = time.perf_counter()
     # The base rows also feed phase 2 (experiments/generation_table.py): only they export the
     # keypoints of every sequence.
@@ -154,7 +157,8 @@ def run_variant(
         "command": "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv),
         "overrides": list(VARIANTS[name].overrides),
         "train_root": cfg.data.root,
-        "budget": f"{steps} steps" if steps is not None else f"{minutes:g} min",
+        "budget": budget,
+        "commit": commit(),
         "steps": int(summary["step"]),
         "wall_minutes": wall,
         "load_average": os.getloadavg()[0],
@@ -170,6 +174,22 @@ def run_variant(
         "num_keypoints": len(skeleton["parents"]),
         "run": str(run),
     }
+
+
+def commit() -> str | None:
+    """The checkout's commit: the step's speed, so the steps a budget buys, depends on it."""
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
+        )
+    except OSError:
+        return None
+    return out.stdout.strip() or None
+
+
+def row_key(row: dict) -> tuple:
+    """Rows of the same variant, seed and budget replace each other; other budgets stay."""
+    return row["data"], row["variant"], row["seed"], row["budget"]
 
 
 def fmt(x, digits: int = 3) -> str:
@@ -208,7 +228,11 @@ def write_report(rows: list[dict]) -> None:
             f"{r['distinct_nearest']} | {r['load_average']:.1f} |"
         )
     lines += ["", "## Commands", ""]
-    lines += [f"- {r['data']} {r['variant']} s{r['seed']}: `{r['command']}`" for r in rows]
+    lines += [
+        f"- {r['data']} {r['variant']} s{r['seed']} ({r['budget']}, "
+        f"commit {r.get('commit') or 'n/a'}): `{r['command']}`"
+        for r in rows
+    ]
     io.write_text(RESULTS / "phase1_study.md", "\n".join(lines) + "\n")
 
 
@@ -233,8 +257,7 @@ def main() -> int:
         row = run_variant(
             args.data, args.variant, args.minutes, args.seed, args.max_crops, args.steps
         )
-        key = (row["data"], row["variant"], row["seed"])
-        rows = [r for r in rows if (r["data"], r["variant"], r["seed"]) != key] + [row]
+        rows = [r for r in rows if row_key(r) != row_key(row)] + [row]
         print(json.dumps(row, indent=1))
     write_report(rows)
     return 0

@@ -304,24 +304,29 @@ def test_detector_rejects_wrong_voxel_shape(tiny_outputs):
         model(voxels[..., :-1])
 
 
-def test_cpu_convolution_gradients_do_not_go_through_ynnpack():
-    """nmjax switches YNNPACK's convolutions off (nmjax/__init__.py): its kernel gradients were
-    3-4x slower than XLA's for the detector's thin convolutions. The compiled kernel gradient
-    must hold no convolution inside a YNNPACK fusion."""
+def _ynn_fusion_bodies(compiled_text: str) -> list[str]:
+    """The fused computations a compiled CPU module hands to YNNPACK."""
     import re
 
+    pattern = r"calls=%([\w.\-]+), backend_config=\{\"fusion_config\":\{\"kind\":\"__ynn"
+    names = re.findall(pattern, compiled_text)
+    return [compiled_text[compiled_text.index(f"%{n} ") :].split("\n}", 1)[0] for n in names]
+
+
+def test_cpu_convolutions_and_reductions_do_not_go_through_ynnpack():
+    """nmjax switches YNNPACK's convolutions and reductions off (nmjax/__init__.py): its kernel
+    gradients of the detector's thin convolutions were 3-4x slower than XLA's, its batch sums
+    17x. Neither may land in a YNNPACK fusion of a compiled module."""
     import nmjax
 
     if jax.default_backend() != "cpu":
         pytest.skip("a CPU backend option")
     assert nmjax.YNN_CONVOLUTION_FLAG in os.environ["XLA_FLAGS"]
     x, w = jnp.ones((2, 16, 16, 16, 4)), jnp.ones((3, 3, 3, 4, 4))
-    text = jax.jit(jax.grad(lambda w: jnp.sum(blocks.conv3d_same(x, w)))).lower(w).compile()
-    text = text.as_text()
-    assert "convolution(" in text
-    ynn = re.findall(
-        r"calls=%([\w.\-]+), backend_config=\{\"fusion_config\":\{\"kind\":\"__ynn", text
-    )
-    for name in ynn:
-        body = text[text.index(f"%{name} ") :].split("\n}", 1)[0]
-        assert "convolution(" not in body, name
+    grad = jax.jit(jax.grad(lambda w: jnp.sum(blocks.conv3d_same(x, w)))).lower(w).compile()
+    batch_sum = jax.jit(lambda x: jnp.sum(x * 1.5, axis=0)).lower(x).compile()
+    for compiled, op in ((grad, "convolution("), (batch_sum, "reduce(")):
+        text = compiled.as_text()
+        assert op in text
+        for body in _ynn_fusion_bodies(text):
+            assert op not in body, body

@@ -308,8 +308,8 @@ def _ynn_fusion_bodies(compiled_text: str) -> list[str]:
     """The fused computations a compiled CPU module hands to YNNPACK."""
     import re
 
-    pattern = r"calls=%([\w.\-]+), backend_config=\{\"fusion_config\":\{\"kind\":\"__ynn"
-    names = re.findall(pattern, compiled_text)
+    lines = [line for line in compiled_text.splitlines() if '"kind":"__ynn_fusion"' in line]
+    names = [re.search(r"calls=%([\w.\-]+)", line).group(1) for line in lines]
     return [compiled_text[compiled_text.index(f"%{n} ") :].split("\n}", 1)[0] for n in names]
 
 

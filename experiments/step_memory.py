@@ -52,11 +52,14 @@ def step_memory(cfg, form: str) -> dict:
     ) = FORMS[form]  # read while tracing, below
     skel.check_config(cfg)
     graphdef, state = skel.build(cfg)
-    steps = skel.Steps(graphdef, cfg, parallel.data_mesh())
+    settings, mesh = skel.StepSettings.of(cfg), parallel.data_mesh()
     g = cfg.model.grid
     voxels = jax.ShapeDtypeStruct((cfg.data.batch_size, cfg.data.frames, g, g, g), jnp.float32)
     tic = time.perf_counter()
-    compiled = steps.train.lower(state, voxels).compile()
+    lowered = skel.train_step.lower(
+        state, {"voxels": voxels}, graphdef=graphdef, settings=settings, mesh=mesh
+    )
+    compiled = lowered.compile()
     seconds = time.perf_counter() - tic
     analysis = compiled.memory_analysis()
     return {

@@ -12,9 +12,10 @@ import dataclasses
 import numpy as np
 from test_train_dyn import make_fake_run
 
+from nmjax import runs
 from nmjax.config import dyn_preset, skel_preset
 from nmjax.data import synthetic
-from nmjax.train import common, dyn, skel
+from nmjax.train import common, skel
 
 SKEL_LOSSES = [119.85226440429688, 105.96868896484375, 97.86418914794922, 95.789794921875]
 DYN_LOSSES = [2.612236976623535, 1.9147276878356934, 1.4218685626983643, 1.5802772045135498]
@@ -59,5 +60,5 @@ def test_phase2_losses_are_pinned(tmp_path):
         val_every=4,
         ckpt_every=4,
     )
-    dyn.train(cfg, progress=False)
+    runs.train_dynamics(cfg, progress=False)
     np.testing.assert_allclose(_train_losses(tmp_path / "dyn"), DYN_LOSSES, rtol=RTOL)

@@ -315,6 +315,9 @@ def test_generate_command(runs, tmp_path):
         assert np.all(np.isfinite(z["keypoints"]))
         assert z["observed"].shape == (1, 13, K, 4) and list(z["observed_frames"]) == [12]
         np.testing.assert_array_equal(z["observed"][0, 12], z["observed"][0, 11])
+        # The conditioning frames of every sample are the observed ones.
+        for sample in z["keypoints"][0]:
+            np.testing.assert_allclose(sample[:2], z["observed"][0, :2], atol=1e-5)
         name = str(z["names"][0])
     with np.load(out / "voxels.npz") as z:
         assert z["voxels"].shape == (1, 2, 13, 16, 16, 16)
@@ -354,5 +357,6 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     bad = tmp_path / "bad.obj"
     bad.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     argv = ["retarget", "--run", str(runs["nm"]), "--target", str(bad), "--out", str(out)]
-    assert cli.main(argv) == 1
-    assert "bad.obj" in capsys.readouterr().err
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "bad.obj" in err and len(err.strip().splitlines()) == 1

@@ -27,7 +27,8 @@ from scipy.sparse import csgraph
 
 from nmjax import io
 from nmjax.data.datasets import read_meta
-from nmjax.evaluate import Detector, phase1_outputs
+from nmjax.evaluate import phase1_outputs
+from nmjax.runs import Detector
 from nmjax.skeleton import METHODS, extract_skeleton, prune
 
 RESULTS = Path(__file__).parent / "results"

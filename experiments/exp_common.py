@@ -21,10 +21,10 @@ import sys
 import time
 from pathlib import Path
 
-from nmjax import io
+from nmjax import io, runs
 from nmjax.config import dyn_preset, skel_preset
 from nmjax.data.datasets import load_sequences
-from nmjax.train import common, dyn, skel
+from nmjax.train import common, skel
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "exp"
@@ -72,6 +72,7 @@ def skel_run(data: str, variant: str, steps: int) -> Path:
         cfg = skel_config(data, variant, steps)
         tic = time.perf_counter()
         summary = skel.train(cfg, run, overwrite=True, progress=False)
+        runs.finish_phase1(run)
         io.write_json(
             run / "experiment.json",
             {"steps": steps, "seconds": time.perf_counter() - tic, "summary": summary},
@@ -98,7 +99,7 @@ def dyn_run(data: str, model: str, skel: Path, steps: int) -> Path:
 
             shutil.rmtree(run)
         tic = time.perf_counter()
-        dyn.train(cfg, progress=False)
+        runs.train_dynamics(cfg, progress=False)
         io.write_json(
             run / "experiment.json", {"steps": steps, "seconds": time.perf_counter() - tic}
         )

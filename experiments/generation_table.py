@@ -23,6 +23,7 @@ from pathlib import Path
 import exp_common as ec
 
 from nmjax import io
+from nmjax.cli import main as nmjax_main
 from nmjax.config import DynTrainConfig, dyn_preset
 from nmjax.evaluate import (
     GEN_HORIZONS,
@@ -31,7 +32,7 @@ from nmjax.evaluate import (
     generation_markdown,
     plot_generation,
 )
-from nmjax.train import common, dyn
+from nmjax.train import common
 
 EXPERIMENT_FILE = "experiment.json"  # {"steps", "seconds"}: written once the training finished
 
@@ -63,7 +64,7 @@ def phase2_run(data: str, model: str, skel: Path, steps: int, preset: str, runs:
         )
     tic = time.perf_counter()
     argv = ["--data", data, "--skel-run", str(skel), "--model", model, "--preset", preset]
-    if dyn.main([*argv, "--steps", str(steps), "--run", str(run)]) != 0:
+    if nmjax_main(["train-dyn", *argv, "--steps", str(steps), "--run", str(run)]) != 0:
         raise SystemExit(f"nmjax train-dyn {' '.join(argv)} failed")
     io.write_json(info, {"steps": steps, "seconds": time.perf_counter() - tic})
     return run

@@ -18,7 +18,8 @@ import numpy as np
 
 from nmjax import io
 from nmjax.data.voxelize import voxel_points
-from nmjax.evaluate import Detector, evaluate_phase1
+from nmjax.evaluate import evaluate_phase1
+from nmjax.runs import Detector
 
 
 def draw(ax, run, title: str) -> None:

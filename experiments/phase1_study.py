@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io, metrics
+from nmjax import io, metrics, runs
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.data import synthetic
 from nmjax.data.datasets import dataset_root
-from nmjax.evaluate import Detector, evaluate_phase1, phase1_outputs
+from nmjax.evaluate import evaluate_phase1, phase1_outputs
+from nmjax.runs import Detector
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "study"
@@ -140,9 +141,8 @@ def run_variant(
     begin = time.perf_counter()
     # The base rows also feed phase 2 (experiments/generation_table.py): only they export the
     # keypoints of every sequence.
-    summary = skel.train(
-        cfg, run, overwrite=True, export=name == "base", progress=sys.stderr.isatty()
-    )
+    summary = skel.train(cfg, run, overwrite=True, progress=sys.stderr.isatty())
+    runs.finish_phase1(run, export=name == "base")
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)

@@ -24,7 +24,8 @@ import numpy as np
 
 from nmjax import metrics
 from nmjax.data.datasets import read_meta
-from nmjax.evaluate import Detector, phase1_outputs
+from nmjax.evaluate import phase1_outputs
+from nmjax.runs import Detector
 
 NOISE_STDS = (0.0, 0.02, 0.04, 0.06, 0.08)
 

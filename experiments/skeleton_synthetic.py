@@ -24,8 +24,8 @@ import numpy as np
 from nmjax import io
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import extract_skeleton
-from nmjax.skeleton_cli import extract_run_skeleton
 
 
 def motion_affinity(joints: np.ndarray, tau: float = 0.05) -> np.ndarray:

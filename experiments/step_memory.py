@@ -29,7 +29,8 @@ from nmjax import io
 from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import blocks
-from nmjax.train import parallel, skel
+from nmjax.models.detector import KeypointDetector
+from nmjax.train import common, parallel, skel
 
 FORMS = ("auto", "per_tap", "native")
 
@@ -38,14 +39,17 @@ def step_memory(cfg, form: str) -> dict:
     """Compile time and memory_analysis() bytes of the phase-1 train step of `cfg`, every
     stride-1 convolution in `form` (`blocks.conv3d_same`)."""
     skel.check_config(cfg)
-    model, optimizer = nnx.merge(*skel.build(cfg))
+    model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed))
     blocks.set_conv_form(model, form)  # a static attribute: it lives in the graphdef
-    graphdef, state = nnx.split((model, optimizer))
-    steps = skel.Steps(graphdef, cfg, parallel.data_mesh())
+    settings, mesh = skel.StepSettings.of(cfg), parallel.data_mesh()
+    graphdef, state = common.init_state(model, settings.optimizer)
     g = cfg.model.grid
     voxels = jax.ShapeDtypeStruct((cfg.data.batch_size, cfg.data.frames, g, g, g), jnp.float32)
     tic = time.perf_counter()
-    compiled = steps.train.lower(state, voxels).compile()
+    lowered = skel.train_step.lower(
+        state, {"voxels": voxels}, graphdef=graphdef, settings=settings, mesh=mesh
+    )
+    compiled = lowered.compile()
     seconds = time.perf_counter() - tic
     analysis = compiled.memory_analysis()
     return {

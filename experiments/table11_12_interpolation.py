@@ -18,14 +18,13 @@ import exp_common as ec
 from nmjax import io
 from nmjax.evaluate import (
     SAMPLING_RATES,
-    Detector,
-    Interpolators,
     evaluate_interpolation,
     evaluate_run,
     interpolation_table,
     plot_mcd,
 )
-from nmjax.train import dyn
+from nmjax.runs import Detector
+from nmjax.tasks import Interpolators
 
 PAPER = (
     "Paper Table 11 (HanCo) averages: Ours 2.64, VRNN 2.98, Lerp 5.07, Slerp 4.52; Table 12 "
@@ -97,13 +96,15 @@ def keypoints_only(args) -> None:
     for data in args.data:
         skel, nm, vrnn = trained_runs(data, args, runs)
         interp = Interpolators(
-            nnx.split(dyn.restore_model(nm)), nnx.split(dyn.restore_model(vrnn)), args.trajectories
+            nnx.split(runs.restore_dynamics(nm)),
+            nnx.split(runs.restore_dynamics(vrnn)),
+            args.trajectories,
         )
         errors: dict = {}
         evaluate_interpolation(
             Detector.load(skel),
             interp,
-            dyn.load_trajectories(skel, "test"),
+            runs.load_trajectories(skel, "test"),
             tuple(args.rates),
             max_segments=args.max_segments,
             voxels=False,

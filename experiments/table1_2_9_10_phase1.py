@@ -20,7 +20,8 @@ import argparse
 import exp_common as ec
 
 from nmjax import io
-from nmjax.evaluate import Detector, evaluate_phase1, fmt
+from nmjax.evaluate import evaluate_phase1, fmt
+from nmjax.runs import Detector
 
 PAPER = {
     "table1": "Paper (AIST++ / HanCo / Panda): Ours 0.804 / 0.944 / 0.954, "

@@ -26,7 +26,7 @@ from nmjax import io
 from nmjax.config import dyn_preset
 from nmjax.data import synthetic
 from nmjax.data.voxelize import normalize_sequence
-from nmjax.train import common, dyn
+from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"
 
@@ -130,7 +130,7 @@ def main() -> None:
             import shutil
 
             shutil.rmtree(run_dir)
-        run_dir, _ = dyn.train(cfg, progress=False)
+        run_dir, _ = runs.train_dynamics(cfg, progress=False)
         records = common.read_metrics(run_dir)
         runs[model] = records
         rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]

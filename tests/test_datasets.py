@@ -169,8 +169,10 @@ def test_empty_split_is_an_error(tmp_path):
 BAD_VERTICES = {
     "rank": (np.zeros((4, 3), np.float32), r"shape \(T, N, 3\)"),
     "last-axis": (np.zeros((4, 5, 2), np.float32), r"shape \(T, N, 3\)"),
-    "nan": (np.where(np.arange(60).reshape(4, 5, 3) == 31, np.nan, 0.0), "NaN or inf.*frame 2"),
-    "inf": (np.full((3, 5, 3), np.inf, np.float32), "NaN or inf"),
+    "nan": (np.where(np.arange(60).reshape(4, 5, 3) == 31, np.nan, 0.0), "NaN, inf.*frame 2"),
+    "inf": (np.full((3, 5, 3), np.inf, np.float32), "NaN, inf"),
+    # Finite in float64, inf once loaded as float32: refused, not turned into inf.
+    "beyond-float32": (np.full((3, 5, 3), 1e300), "beyond the float32 range"),
     "empty-frames": (np.zeros((4, 0, 3), np.float32), "empty frames"),
     "one-frame": (np.zeros((1, 5, 3), np.float32), "at least 2 frames"),
     "integers": (np.zeros((3, 5, 3), np.int32), "floating point"),

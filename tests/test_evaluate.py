@@ -11,6 +11,7 @@ from tiny_runs import PARENTS, make_runs
 
 from nmjax import evaluate, metrics
 from nmjax.data.voxelize import voxelize
+from nmjax.tasks import Interpolators
 
 K = len(PARENTS)
 
@@ -93,10 +94,10 @@ def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, mon
         return voxelize(keypoints[..., :3], grid)
 
     detector = types.SimpleNamespace(cfg=cfg, run=runs["skel"], decode=decode)
-    interp = evaluate.Interpolators(nm=None, vrnn=None, trajectories=1)
+    interp = Interpolators(nm=None, vrnn=None, trajectories=1)
     for traj, zero in ((linear, True), (curved, False)):
         monkeypatch.setattr(
-            evaluate, "sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
+            evaluate.runs, "sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
         )
         errors: dict = {}
         out = evaluate.evaluate_interpolation(
@@ -142,10 +143,11 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
 def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):
     from nmjax import cli
 
-    assert cli.main(["evaluate", "--run", str(runs["vrnn"])]) == 1
+    assert cli.main(["evaluate", "--run", str(runs["vrnn"])]) == 2
     assert "--vrnn-run" in capsys.readouterr().err
-    assert cli.main(["evaluate", "--run", str(tmp_path / "nope")]) == 1
-    assert "config.json not found" in capsys.readouterr().err
+    assert cli.main(["evaluate", "--run", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert "config.json not found" in err and len(err.strip().splitlines()) == 1
 
 
 def test_ground_truth_supervised_variant_replaces_only_the_volume_term():
@@ -280,7 +282,7 @@ def test_generation_command_writes_its_table_and_plot(runs, tmp_path):
     assert results["settings"]["real_keypoints"] == str(tmp_path / "long.npz")
     ours = results["methods"]["Ours"]
     assert np.isfinite(ours["20"]["set_distance"]["mean"]) and ours["20"]["set_distance"]["n"] > 0
-    assert cli.main([*argv[:-1], str(tmp_path / "missing.npz")]) == 1
+    assert cli.main([*argv[:-1], str(tmp_path / "missing.npz")]) == 2
 
 
 def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs, tmp_path, capsys):
@@ -292,9 +294,9 @@ def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs
     config["skel_run"] = str(tmp_path / "skel-other")
     (other / "config.json").write_text(json.dumps(config))
     argv = ["evaluate", "--run", str(runs["nm"]), "--generation"]
-    assert cli.main([*argv, "--vrnn-run", str(other)]) == 1
+    assert cli.main([*argv, "--vrnn-run", str(other)]) == 2
     assert "skel-other" in capsys.readouterr().err
-    assert cli.main([*argv, "--horizons", "1,5"]) == 1
+    assert cli.main([*argv, "--horizons", "1,5"]) == 2
     assert "--horizons must be comma-separated integers >= 2" in capsys.readouterr().err
-    assert cli.main(["evaluate", "--run", str(runs["skel"]), "--generation"]) == 1
+    assert cli.main(["evaluate", "--run", str(runs["skel"]), "--generation"]) == 2
     assert "phase-2" in capsys.readouterr().err

@@ -13,10 +13,15 @@ import pytest
 import trimesh
 
 from nmjax.cli import main as nmjax_main
-from nmjax.data import prepare
 from nmjax.data.datasets import load_sequences, split_by_frames
 
 POINTS = 300
+
+
+def prepare_main(argv: list[str]) -> int:
+    return nmjax_main(["prepare-data", *argv])
+
+
 HALF = 0.5  # half extent of the unit box
 
 
@@ -46,7 +51,7 @@ def test_round_trip(tmp_path):
     frames = {"jump": 11, "walk": 3, "run": 4}
     write_raw(source, frames, joints_for=("jump",))
     argv = ["--data", "dfaust", "--from", str(source), "--root", str(root), "--points"]
-    assert prepare.main([*argv, str(POINTS)]) == 0
+    assert prepare_main([*argv, str(POINTS)]) == 0
     split = split_by_frames(frames)
     assert json.loads((root / "split.json").read_text()) == split
     meta = json.loads((root / "meta.json").read_text())
@@ -71,13 +76,13 @@ def test_round_trip(tmp_path):
     assert loaded["walk"].joints is None
     # Same seed, same bytes; another seed samples other points.
     again = tmp_path / "again"
-    assert prepare.main([*argv[:-3], "--root", str(again), "--points", str(POINTS)]) == 0
+    assert prepare_main([*argv[:-3], "--root", str(again), "--points", str(POINTS)]) == 0
     split_dir = "train" if "walk" in split["train"] else "test"
     first = (root / split_dir / "vertices" / "walk.npy").read_bytes()
     assert (again / split_dir / "vertices" / "walk.npy").read_bytes() == first
     other = tmp_path / "other"
     argv_other = [*argv[:-3], "--root", str(other), "--points", str(POINTS), "--seed", "1"]
-    assert prepare.main(argv_other) == 0
+    assert prepare_main(argv_other) == 0
     assert (other / split_dir / "vertices" / "walk.npy").read_bytes() != first
 
 
@@ -101,13 +106,13 @@ def test_existing_dataset_needs_overwrite(tmp_path, capsys):
     source, root = tmp_path / "raw", tmp_path / "out"
     write_raw(source, {"a": 3, "b": 3})
     argv = ["--data", "panda", "--from", str(source), "--root", str(root), "--points", "20"]
-    assert prepare.main(argv) == 0
+    assert prepare_main(argv) == 0
     stamp = (root / "meta.json").stat().st_mtime_ns
-    assert prepare.main(argv) == 0
+    assert prepare_main(argv) == 0
     assert "--overwrite" in capsys.readouterr().out
     assert (root / "meta.json").stat().st_mtime_ns == stamp
     (root / "train" / "vertices" / "stale.npy").write_bytes(b"old")
-    assert prepare.main([*argv, "--overwrite"]) == 0
+    assert prepare_main([*argv, "--overwrite"]) == 0
     assert not (root / "train" / "vertices" / "stale.npy").exists()
 
 
@@ -141,17 +146,18 @@ def test_bad_raw_input(tmp_path, capsys, case, match):
         write_raw(source, {"a": 2, "b": 2})
         (source / "split.json").write_text(json.dumps({"train": ["a"], "test": []}))
     argv = ["--data", "aist", "--from", str(source), "--root", str(root), "--points", "10"]
-    assert prepare.main(argv) == 1
-    assert re.search(match, capsys.readouterr().err)
+    assert prepare_main(argv) == 2
+    err = capsys.readouterr().err
+    assert re.search(match, err) and len(err.strip().splitlines()) == 1
     assert not (root / "meta.json").exists()
 
 
 def test_argument_errors(tmp_path, capsys):
-    assert prepare.main(["--data", "dfaust", "--root", str(tmp_path)]) == 2
+    assert prepare_main(["--data", "dfaust", "--root", str(tmp_path)]) == 2
     assert "needs --from DIR" in capsys.readouterr().err
-    assert prepare.main(["--data", "synth-hand", "--from", str(tmp_path)]) == 2
-    assert prepare.main(["--data", "dfaust", "--from", str(tmp_path), "--frames", "1"]) == 2
-    assert prepare.main(["--data", "nope"]) == 1
+    assert prepare_main(["--data", "synth-hand", "--from", str(tmp_path)]) == 2
+    assert prepare_main(["--data", "dfaust", "--from", str(tmp_path), "--frames", "1"]) == 2
+    assert prepare_main(["--data", "nope"]) == 2
     assert "unknown dataset 'nope'" in capsys.readouterr().err
 
 
@@ -171,6 +177,6 @@ def test_synthetic_calls_the_generator(tmp_path, monkeypatch):
     monkeypatch.setattr(nmjax.data, "synthetic", fake, raising=False)
     monkeypatch.setenv("NMJAX_DATA", str(tmp_path))
     argv = ["--data", "synth-quadruped", "--sequences", "2", "--frames", "5", "--seed", "7"]
-    assert prepare.main(argv) == 0
+    assert prepare_main(argv) == 0
     expected = {"num_sequences": 2, "frames": 5, "points": 20_000, "seed": 7}
     assert calls == [("synth-quadruped", tmp_path / "synth-quadruped", expected)]

@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from nmjax import cli, io
+from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
     Skeleton,
     algorithm1_parents,
@@ -23,7 +24,6 @@ from nmjax.skeleton import (
     skeleton_from_parents,
     skin_weights,
 )
-from nmjax.skeleton_cli import extract_run_skeleton
 
 # Known trees as parent arrays (root is its own parent).
 CHAIN = [0, 0, 1, 2, 3, 4, 5, 6, 7]

@@ -354,5 +354,6 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     bad = tmp_path / "bad.obj"
     bad.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     argv = ["retarget", "--run", str(runs["nm"]), "--target", str(bad), "--out", str(out)]
-    assert cli.main(argv) == 1
-    assert "bad.obj" in capsys.readouterr().err
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert "bad.obj" in err and len(err.strip().splitlines()) == 1

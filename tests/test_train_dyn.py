@@ -1,4 +1,5 @@
-"""Tests of nmjax.train.dyn on a fake phase-1 run (a known tree moved by smooth rotations)."""
+"""Tests of nmjax.train.dyn (and the phase-2 side of nmjax.runs) on a fake phase-1 run (a known
+tree moved by smooth rotations)."""
 
 from __future__ import annotations
 
@@ -6,13 +7,16 @@ import dataclasses
 import json
 import re
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
 
-from nmjax import io
+from nmjax import io, runs
+from nmjax.cli import main as nmjax_main
+from nmjax.cli.train import dyn_config, dyn_parser
 from nmjax.config import dyn_preset
 from nmjax.models.dynamics import bone_lengths
 from nmjax.train import common, dyn
@@ -75,25 +79,36 @@ def fake_run(tmp_path_factory):
 
 def test_missing_inputs_name_the_command_to_run(tmp_path):
     with pytest.raises(FileNotFoundError, match="make train-skel DATA=synth-arm"):
-        dyn.find_skel_run("synth-arm", runs_root=tmp_path)
+        runs.find_skel_run("synth-arm", runs_root=tmp_path)
     run = tmp_path / "skel-synth-arm-1"
     run.mkdir()
-    assert dyn.find_skel_run("synth-arm", runs_root=tmp_path) == run
+    assert runs.find_skel_run("synth-arm", runs_root=tmp_path) == run
     with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax extract-skeleton --run {run}")):
-        dyn.read_skeleton(run)
+        runs.read_skeleton(run)
     io.write_json(run / "skeleton.json", {"parents": [1, 0], "order": [0, 1]})
-    with pytest.raises(ValueError, match="not a tree"):
-        dyn.read_skeleton(run)
+    with pytest.raises(ValueError, match="extract-skeleton"):
+        runs.read_skeleton(run)
+    # A missing export is an error naming the command, never a hidden phase-1 inference.
+    with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax export-keypoints --run {run}")):
+        runs.load_trajectories(run, "train")
+    assert not list(run.glob("keypoints_*"))
 
 
 def test_main_reports_missing_phase1_run(tmp_path, capsys):
-    rc = dyn.main(["--data", "synth-arm", "--skel-run", str(tmp_path / "nope"), "--preset", "tiny"])
-    assert rc == 1
-    assert "make train-skel DATA=synth-arm" in capsys.readouterr().err
+    argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(tmp_path / "nope")]
+    assert nmjax_main([*argv, "--preset", "tiny"]) == 2
+    err = capsys.readouterr().err
+    assert "make train-skel DATA=synth-arm" in err and len(err.strip().splitlines()) == 1
+
+
+def test_trajectories_beyond_float32_are_refused(tmp_path):
+    np.savez(tmp_path / "k.npz", seq=np.full((3, 2, 4), 1e300))
+    with pytest.raises(ValueError, match="float32 range"):
+        runs.read_trajectories(tmp_path / "k.npz")
 
 
 def test_crops_are_contiguous_windows_of_one_sequence(fake_run):
-    traj = dyn.load_trajectories(fake_run, "train")
+    traj = runs.load_trajectories(fake_run, "train")
     poses, starts = dyn.crop_table(traj, 6)
     # valid starts: 30-6+1 + 25-6+1 + 1 (the 4-frame sequence padded to 6)
     assert len(starts) == 25 + 20 + 1 and poses.shape == (30 + 25 + 6, K, 4)
@@ -128,11 +143,11 @@ def jaxpr_stats(jaxpr) -> tuple[int, list[int]]:
     return count, scans
 
 
-def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path):
+def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkeypatch):
     def trace(frames):
         cfg = tiny_cfg(fake_run, tmp_path, frames=frames)
         graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-        poses, starts = dyn.crop_table(dyn.load_trajectories(fake_run, "train"), frames)
+        poses, starts = dyn.crop_table(runs.load_trajectories(fake_run, "train"), frames)
         step = dyn.make_train_step(graphdef, cfg)
         args = (state, jnp.asarray(poses), jnp.asarray(starts), jax.random.key(0), jnp.int32(0))
         return jaxpr_stats(jax.make_jaxpr(step)(*args)), step, args
@@ -144,25 +159,23 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path):
     # No per-frame unrolling: doubling T does not add a single equation.
     assert count6 == count12
 
+    # At most one trace for all the calls below (none if make_jaxpr's trace is reused).
+    monkeypatch.setattr(dyn, "loss_fn", chex.assert_max_traces(dyn.loss_fn, n=1))
     state = args[0]
-    sizes = []
     for i in range(3):
         state, metrics = step(state, *args[1:4], jnp.int32(i))
-        sizes.append(dyn.train_step._cache_size())
-    assert sizes[0] == sizes[1] == sizes[2]  # compiled by the first call only
-    # A second model of the same configuration reuses the compiled step.
+    # A second model of the same configuration reuses the compiled step (no second trace).
     graphdef, fresh = dyn.build(tiny_cfg(fake_run, tmp_path, frames=6), PARENTS, ORDER)
     dyn.make_train_step(graphdef, tiny_cfg(fake_run, tmp_path, frames=6))(
         fresh, *args[1:4], jnp.int32(0)
     )
-    assert dyn.train_step._cache_size() == sizes[0]
     assert all(np.isfinite(float(v)) for v in metrics.values())
 
 
 def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path)
     graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-    poses, _ = dyn.crop_table(dyn.load_trajectories(fake_run, "train"), cfg.frames)
+    poses, _ = dyn.crop_table(runs.load_trajectories(fake_run, "train"), cfg.frames)
     poses, starts = jnp.asarray(poses), jnp.array([3], jnp.int32)  # one crop: a fixed batch
     step = dyn.make_train_step(graphdef, cfg)
     recon = []
@@ -177,12 +190,13 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
 
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=4, val_every=4, log_every=1)
-    run_full, hist_full = dyn.train(cfg, progress=False)
+    run_full, hist_full = runs.train_dynamics(cfg, progress=False)
     half = dataclasses.replace(cfg, run=str(tmp_path / "half"), steps=2)
-    dyn.train(half, progress=False)
-    run_half, hist_half = dyn.train(dataclasses.replace(half, steps=4), resume=True, progress=False)
-    full_state = nnx.state(dyn.restore_model(run_full))
-    half_state = nnx.state(dyn.restore_model(run_half))
+    runs.train_dynamics(half, progress=False)
+    resumed = dataclasses.replace(half, steps=4)
+    run_half, hist_half = runs.train_dynamics(resumed, resume=True, progress=False)
+    full_state = nnx.state(runs.restore_dynamics(run_full))
+    half_state = nnx.state(runs.restore_dynamics(run_half))
     for a, b in zip(jax.tree.leaves(full_state), jax.tree.leaves(half_state), strict=True):
         np.testing.assert_array_equal(a, b)
     assert hist_half[-1] == hist_full[-1]
@@ -195,7 +209,7 @@ def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
 def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, tmp_path, capsys):
     run = tmp_path / "cli"
     argv = ["--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
-    assert dyn.main([*argv, "--steps", "10", "--run", str(run)]) == 0
+    assert nmjax_main(["train-dyn", *argv, "--steps", "10", "--run", str(run)]) == 0
     assert "final validation" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
     assert saved["skel_run"] == str(fake_run) and saved["model"]["model"] == "nm"
@@ -209,10 +223,10 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
     ]
     assert any((run / "tb").iterdir())
     with pytest.raises(ValueError, match="--resume"):
-        dyn.train(dyn.parse_args([*argv, "--run", str(run)])[0], progress=False)
+        runs.train_dynamics(dyn_config(parse_dyn([*argv, "--run", str(run)])), progress=False)
 
-    model = dyn.restore_model(run)
-    x = jnp.asarray(dyn.validation_crops(dyn.load_trajectories(fake_run, "test"), 6))
+    model = runs.restore_dynamics(run)
+    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "test"), 6))
     keypoints, rotations = model.generate(x[:, :2], 10, jax.random.key(0))
     assert keypoints.shape == (x.shape[0], 12, K, 4) and rotations.shape[-2:] == (3, 3)
     assert bool(jnp.all(jnp.isfinite(keypoints)))
@@ -221,17 +235,19 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
     np.testing.assert_allclose(lengths, np.broadcast_to(offsets[:, None], lengths.shape), atol=1e-5)
 
 
+def parse_dyn(argv):
+    return dyn_parser().parse_args(argv)
+
+
 def test_command_line_options_map_onto_the_config():
-    cfg, resume = dyn.parse_args(
-        ["--data", "synth-hand", "--model", "vrnn", "--preset", "cpu", "--steps", "7"]
+    cfg = dyn_config(
+        parse_dyn(["--data", "synth-hand", "--model", "vrnn", "--preset", "cpu", "--steps", "7"])
     )
-    assert not resume and cfg.model.model == "vrnn" and cfg.steps == 7
+    assert cfg.model.model == "vrnn" and cfg.steps == 7
     assert cfg.model.hidden == dyn_preset("synth-hand", "cpu").model.hidden
-    cfg, resume = dyn.parse_args(["--run", "r", "--resume", "--skel-run", "s"])
-    assert resume and cfg.run == "r" and cfg.skel_run == "s" and cfg.data == "synth-hand"
-    with pytest.raises(SystemExit):
-        dyn.parse_args(["--resume"])
-    cfg, _ = dyn.parse_args(["--set", "kl_weight=1e-5", "--set", "model.latent=8"])
-    assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8
-    with pytest.raises(SystemExit):  # an unknown field is named, not ignored
-        dyn.parse_args(["--set", "model.no_such_field=1"])
+    cfg = dyn_config(parse_dyn(["--set", "kl_weight=1e-5", "--set", "model.latent=8"]))
+    assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8 and cfg.model.model == "nm"
+    with pytest.raises(ValueError, match="no_such_field"):  # an unknown field is named
+        dyn_config(parse_dyn(["--set", "model.no_such_field=1"]))
+    with pytest.raises(ValueError, match="--resume needs --run"):
+        dyn_config(parse_dyn(["--resume"]))

@@ -1,5 +1,5 @@
 """Tests of phase-1 training (nmjax.train.skel): learning, single compilation, exact resume,
-NaN stop, bad input, run-folder artefacts."""
+NaN stop, bad input, run-folder artefacts (nmjax.runs)."""
 
 from __future__ import annotations
 
@@ -9,14 +9,16 @@ import os
 import subprocess
 import sys
 
+import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from nmjax import config
+from nmjax import config, runs
+from nmjax.cli import main as nmjax_main
 from nmjax.config import skel_preset
-from nmjax.train import common, skel
+from nmjax.train import common, parallel, skel
 
 
 @pytest.fixture(scope="module")
@@ -51,25 +53,31 @@ def _leaves(state):
     return [np.asarray(x) for x in jax.tree.leaves(state)]
 
 
-def test_loss_decreases_on_fixed_batch_and_compiles_once(data_root):
+def test_loss_decreases_on_fixed_batch_and_compiles_once(data_root, monkeypatch):
     from nmjax.data import pipeline
 
+    # Traced at most once over all the steps (zero times if another test compiled this step).
+    monkeypatch.setattr(skel, "loss_fn", chex.assert_max_traces(skel.loss_fn, n=1))
     cfg = _cfg(data_root, learning_rate=3e-3)
     graphdef, state = skel.build(cfg)
-    steps = skel.Steps(graphdef, cfg)  # a fresh instance: its own trace counter
-    voxels = jnp.asarray(next(pipeline.skel_iterator(cfg.data, "train"))["voxels"])
+    mesh = parallel.data_mesh()
+    state = parallel.replicate(state, mesh)  # placed as the trainer places it
+    step_fn, _ = skel.make_steps(graphdef, cfg, mesh)
+    batch = skel.device_batch(next(pipeline.skel_iterator(cfg.data, "train")), cfg, mesh)
     losses = []
     for _ in range(8):
-        state, scalars = steps.train(state, voxels)
+        state, scalars = step_fn(state, batch)
         losses.append(float(scalars["loss"]))
-    assert steps.train_traces == 1
     assert losses[-1] < 0.9 * losses[0], losses
     assert set(scalars) >= {"loss", "recon", "sparse", "sep", "vol", "local", "time", "traj"}
 
 
-def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path):
+def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, monkeypatch):
+    # The compiled step is shared by the three runs of this process: at most one trace.
+    monkeypatch.setattr(skel, "loss_fn", chex.assert_max_traces(skel.loss_fn, n=1))
     cfg = _cfg(data_root)
     straight = skel.train(cfg, tmp_path / "straight", progress=False)
+    runs.finish_phase1(tmp_path / "straight")
     first = skel.train(
         dataclasses.replace(cfg, steps=3), tmp_path / "resumed", progress=False, finalize=False
     )
@@ -89,8 +97,6 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path):
     records = common.read_metrics(tmp_path / "resumed")
     train_steps = [r["step"] for r in records if "train/loss" in r]
     assert train_steps == [1, 2, 3, 4, 5, 6]
-    # The compiled step is shared by the three runs of this process: one trace.
-    assert skel.get_steps(graphdef, cfg).train_traces == 1
 
     run = tmp_path / "straight"
     k, n, g = cfg.model.num_keypoints, cfg.model.num_affinity, cfg.model.grid
@@ -115,11 +121,21 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path):
             assert len(archive.files) == 1
             kp = archive[archive.files[0]]
             assert kp.shape == (8, k, 4)  # the whole 8-frame sequence, windows of T=3 padded
+    # The exported values are the final detector's keypoints, window by window (the last window
+    # padded with the last frame), computed here without the exporter's batching.
+    from nmjax.data.datasets import load_sequences
+
+    model, _ = runs.load_detector(run, step=6)
+    (seq,) = load_sequences(cfg.data.name, "test", cfg.data.root)
+    windows = runs.sequence_windows(runs.sequence_voxels(seq, cfg.data.sample_rate, 8), 3)
+    direct = np.concatenate([np.asarray(model.detect(jnp.asarray(w[None]))[1][0]) for w in windows])
+    with np.load(run / "keypoints_test.npz") as archive:
+        np.testing.assert_allclose(archive[seq.name], direct[:8], rtol=1e-5, atol=1e-6)
 
 
 def test_sequence_windows_pad_with_last_frame():
     frames = np.arange(7, dtype=np.float32)[:, None, None, None] * np.ones((7, 2, 2, 2))
-    windows = skel.sequence_windows(frames, 3)
+    windows = runs.sequence_windows(frames, 3)
     assert windows.shape == (3, 3, 2, 2, 2)
     np.testing.assert_array_equal(windows[:, :, 0, 0, 0].ravel(), [0, 1, 2, 3, 4, 5, 6, 6, 6])
 
@@ -139,12 +155,28 @@ def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(data_root, tmp_
     assert all(np.all(np.isfinite(x)) for x in _leaves(good))
 
 
+def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(data_root, tmp_path):
+    # Metrics are fetched at log / checkpoint steps only (4 and 2 here); the NaN of step 3 is
+    # found at step 4 and reported as step 3, before step 4 could be checkpointed.
+    cfg = _cfg(data_root, log_every=4, val_every=6, ckpt_every=2)
+
+    def poison(step, state):
+        return jax.tree.map(lambda x: x * jnp.nan, state) if step == 2 else state
+
+    with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
+        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison)
+    assert common.checkpoint_steps(tmp_path / "run" / "checkpoints") == [2]
+    assert not (tmp_path / "run" / common.METRICS_FILE).exists()  # nothing logged before 4
+
+
 def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_path):
     # A limit that has passed once the first step ends: that step is the last one, validated,
     # checkpointed and finalised like step `steps` would be.
     cfg = _cfg(data_root, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
     summary = skel.train(cfg, tmp_path / "run", progress=False)
-    short = skel.train(cfg, tmp_path / "short", progress=False, export=False)
+    runs.finish_phase1(tmp_path / "run")
+    short = skel.train(cfg, tmp_path / "short", progress=False)
+    runs.finish_phase1(tmp_path / "short", export=False)
     assert (tmp_path / "short" / "skeleton.json").is_file() and short["step"] == 1
     assert not list((tmp_path / "short").glob("keypoints_*.npz"))
     assert summary["step"] == 1 and summary["stopped_by_time_limit"] is True
@@ -153,7 +185,7 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
         assert ckpt.all_steps() == [1]
     assert (tmp_path / "run" / "skeleton.json").is_file()
     # The exporter can read another copy of the dataset and write elsewhere: same keypoints.
-    again = skel.export_keypoints(
+    again = runs.export_keypoints(
         tmp_path / "run", "test", data_root=data_root, path=tmp_path / "again.npz"
     )
     with np.load(again) as a, np.load(tmp_path / "run" / "keypoints_test.npz") as b:
@@ -178,16 +210,15 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
 )
 def test_bad_config_refused_before_anything_runs(tmp_path, capsys, override, match):
     run = tmp_path / "run"
-    rc = skel.main(
-        ["--data", "synth-arm", "--preset", "tiny", "--run", str(run), "--set", override]
-    )
-    assert rc == 2
-    assert match in capsys.readouterr().err
+    argv = ["train-skel", "--data", "synth-arm", "--preset", "tiny", "--run", str(run)]
+    assert nmjax_main([*argv, "--set", override]) == 2
+    err = capsys.readouterr().err
+    assert match in err and len(err.strip().splitlines()) == 1
     assert not run.exists()
 
 
 def test_unknown_data_lists_valid_names(capsys):
-    assert skel.main(["--data", "nope"]) == 2
+    assert nmjax_main(["train-skel", "--data", "nope"]) == 2
     err = capsys.readouterr().err
     assert "'nope'" in err and "synth-hand" in err and "hanco" in err
 
@@ -220,7 +251,8 @@ def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(data_root, t
         p.write_bytes(b"not a checkpoint")
     files = {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()}
     # Restoring a corrupt checkpoint leaves orbax's tensorstore reads calling into a closed event
-    # loop later (unraisable noise under pytest), so the command runs in its own process.
+    # loop later (unraisable noise under pytest), so the command runs in its own process (with no
+    # time limit: a loaded machine may take long to start it).
     result = subprocess.run(
         [
             sys.executable,
@@ -236,9 +268,8 @@ def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(data_root, t
         ],
         capture_output=True,
         text=True,
-        timeout=300,
         env={**os.environ, "JAX_PLATFORMS": "cpu"},
     )
-    assert result.returncode == 1, result.stderr[-2000:]
+    assert result.returncode == 2, result.stderr[-2000:]
     assert "checkpoint 2" in result.stderr and "corrupt" in result.stderr
     assert {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()} == files

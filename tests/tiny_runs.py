@@ -18,6 +18,7 @@ ORDER = (0, 1, 2, 4, 3, 5)
 def make_runs(root: Path) -> dict[str, Path]:
     """{"data", "skel", "nm", "vrnn"} folders under `root`: a 3-sequence synth-arm set (12 frames
     each), a tiny phase-1 run (G=16, K=6) and its "nm" and "vrnn" phase-2 runs."""
+    from nmjax import runs
     from nmjax.config import dyn_preset, skel_preset
     from nmjax.data import synthetic
     from nmjax.skeleton import skeleton_from_parents
@@ -36,7 +37,7 @@ def make_runs(root: Path) -> dict[str, Path]:
     ckpt.close()
     skeleton = skeleton_from_parents(np.array(PARENTS))
     skeleton.save(skel_run / "skeleton.json", intensities=np.full(len(PARENTS), 0.5))
-    skel.export_keypoints(skel_run, "test")
+    runs.export_keypoints(skel_run, "test")
     runs = {"data": data, "skel": skel_run}
     for kind in ("nm", "vrnn"):
         dcfg = dyn_preset("synth-arm", "tiny")

@@ -9,7 +9,7 @@ waiting for data vs computing, compile time and peak memory.
 
 - Phase 1 (`nmjax.train.skel`): the real grain pipeline of `--data` (a synthetic set is generated
   on first use, outside the timings). Per step, "load" is the wait for the next batch from the
-  grain iterator plus the host -> device placement (`skel.step_inputs`, blocked until ready);
+  grain iterator plus the host -> device placement (`skel.device_batch`, blocked until ready);
   "compute" is the compiled step until its outputs are ready. steps/s counts both.
 - Phase 2 (`nmjax.train.dyn`): random-walk keypoint trajectories on a hand-like tree (five chains
   from the root) stand in for a phase-1 run; the step's cost does not depend on the values. Its
@@ -144,16 +144,18 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
     )
     graphdef, state = skel.build(cfg)
     state = parallel.replicate(state, mesh)
-    runner = skel.Steps(graphdef, cfg, mesh)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
-    inputs = skel.step_inputs(runner, next(data_iter))
-    compiled, compile_s = _timed_compile(runner.train, state, *inputs)
+    inputs = skel.device_batch(next(data_iter), cfg, mesh)
+    settings = skel.StepSettings.of(cfg)
+    compiled, compile_s = _timed_compile(
+        skel.train_step, state, inputs, graphdef=graphdef, settings=settings, mesh=mesh
+    )
     load, compute = [], []
     for i in range(warmup + steps):
         tic = time.perf_counter()
-        inputs = jax.block_until_ready(skel.step_inputs(runner, next(data_iter)))
+        inputs = jax.block_until_ready(skel.device_batch(next(data_iter), cfg, mesh))
         toc = time.perf_counter()
-        state, scalars = jax.block_until_ready(compiled(state, *inputs))
+        state, scalars = jax.block_until_ready(compiled(state, inputs))
         if i >= warmup:
             load.append(toc - tic)
             compute.append(time.perf_counter() - toc)
@@ -288,47 +290,6 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def parse_args(argv: Sequence[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="nmjax bench",
-        description="Steps/s, frames/s, data-loading vs compute time, compile time and peak "
-        "memory of the phase-1 and phase-2 train steps.",
-    )
-    parser.add_argument("--phase", nargs="+", default=list(PHASES), choices=PHASES)
-    parser.add_argument("--preset", nargs="+", default=["cpu", "default"], choices=PRESETS)
-    parser.add_argument("--data", default="synth-arm", help="dataset of the phase-1 pipeline")
-    parser.add_argument("--steps", type=int, default=10, help="timed steps per row")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed steps after compiling")
-    add_override_argument(
-        parser,
-        "config override for both phases, or one phase with a prefix: "
-        "skel:model.channels=16, dyn:batch_size=8",
-    )
-    parser.add_argument(
-        "--compute-dtype",
-        default=None,
-        choices=("float32", "bfloat16"),
-        help="phase-1 3D convolutions (model.compute_dtype); default: the preset's",
-    )
-    parser.add_argument(
-        "--dyn-model", nargs="+", default=["nm"], choices=("nm", "vrnn"), help="phase-2 models"
-    )
-    parser.add_argument(
-        "--keypoints", type=int, default=None, help="phase-2 K (default: the dataset's K)"
-    )
-    parser.add_argument(
-        "--same-process",
-        action="store_true",
-        help="measure every row in this process (default: one fresh process per row, so that "
-        "each row's peak memory is its own)",
-    )
-    parser.add_argument("--out", default=None, help="write the header and rows as JSON here")
-    args = parser.parse_args(list(argv))
-    if args.steps < 1 or args.warmup < 0:
-        parser.error(f"--steps must be >= 1 and --warmup >= 0, got {args.steps}, {args.warmup}")
-    return args
-
-
 def jobs(args: argparse.Namespace) -> list[tuple[str, str, str | None]]:
     """(phase, preset, phase-2 model or None) of every row, in output order."""
     out: list[tuple[str, str, str | None]] = []
@@ -411,19 +372,6 @@ def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[s
     emit("")
     emit(format_table(rows))
     return {"environment": env, "args": vars(args), "rows": rows}
-
-
-def main(argv: Sequence[str]) -> int:
-    args = parse_args(argv)
-    try:
-        result = run(args)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"bench: {err}", file=sys.stderr)
-        return 2
-    if args.out is not None:
-        io.write_json(args.out, result)
-        print(f"wrote {args.out}")
-    return 0
 
 
 # --- the optimisations in the code vs their plain formulations --------------------------------

@@ -34,12 +34,7 @@ clips of N frames (`metrics.set_distance`), with 95% confidence intervals over c
 
 from __future__ import annotations
 
-import argparse
-import dataclasses
-import functools
-import json
 import math
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -48,8 +43,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import io, metrics, tasks
-from nmjax.config import DynTrainConfig, SkelTrainConfig
+from nmjax import io, metrics, runs, tasks
+from nmjax.runs import Detector
+from nmjax.tasks import Interpolators
 from nmjax.train import common
 
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
@@ -79,89 +75,6 @@ def summarize(values: list[float]) -> dict[str, float]:
 
 
 # --- runs ---------------------------------------------------------------------------------------
-
-
-def run_kind(run: str | Path) -> str:
-    """ "dyn" for a phase-2 run folder (its config names a `skel_run`), "skel" for phase 1."""
-    path = Path(run) / common.CONFIG_FILE
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; --run must be a run folder of `nmjax train-skel` or "
-            "`nmjax train-dyn`"
-        )
-    try:
-        config = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}); the run folder is damaged") from err
-    return "dyn" if "skel_run" in config else "skel"
-
-
-def find_vrnn_run(dyn_run: Path, skel_run: Path) -> Path | None:
-    """A positional-baseline phase-2 run beside `dyn_run` trained on the same phase-1 run."""
-    for candidate in sorted(Path(dyn_run).parent.glob("*"), reverse=True):
-        if candidate == Path(dyn_run) or not (candidate / common.CONFIG_FILE).is_file():
-            continue
-        try:
-            cfg = common.load_config(candidate, DynTrainConfig)
-        except (ValueError, FileNotFoundError, TypeError):
-            continue
-        same = cfg.skel_run and Path(cfg.skel_run).resolve() == Path(skel_run).resolve()
-        if cfg.model.model == "vrnn" and same and (candidate / "checkpoints").is_dir():
-            return candidate
-    return None
-
-
-@dataclasses.dataclass
-class Detector:
-    """A restored phase-1 detector with compiled detect / reconstruct / decode functions."""
-
-    run: Path
-    cfg: SkelTrainConfig
-    graphdef: Any
-    state: Any
-
-    @classmethod
-    def load(cls, run: str | Path) -> Detector:
-        from nmjax.train.skel import load_detector
-
-        model, cfg = load_detector(run)
-        graphdef, state = nnx.split(model)
-        return cls(Path(run), cfg, graphdef, state)
-
-    def run_batches(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints (C, T, K, 4) and reconstructions (C, T, G, G, G) of crops (C, T, G, G, G).
-
-        Crops go through in batches of the training batch size (the last one padded), so one
-        compiled shape serves every call.
-        """
-        b = self.cfg.data.batch_size
-        n = len(voxels)
-        padded = np.concatenate([voxels, np.repeat(voxels[-1:], (-n) % b, axis=0)])
-        kps, recons = [], []
-        for i in range(0, len(padded), b):
-            kp, recon = _forward(self.graphdef, self.state, jnp.asarray(padded[i : i + b]))
-            kps.append(np.asarray(kp))
-            recons.append(np.asarray(recon))
-        return np.concatenate(kps)[:n], np.concatenate(recons)[:n]
-
-    def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
-        """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
-        return np.asarray(
-            _decode(self.graphdef, self.state, jnp.asarray(keypoints), jnp.asarray(first_voxels))
-        )
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _forward(graphdef, state, voxels):
-    out = nnx.merge(graphdef, state)(voxels)
-    return out["keypoints"], out["recon"]
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _decode(graphdef, state, keypoints, first_voxels):
-    model = nnx.merge(graphdef, state)
-    features = model.features(first_voxels)  # c_1 of frame ts: f_feat sees one frame
-    return model.decode(keypoints, features, first_voxels)
 
 
 # --- phase 1: SC-score and 4D tracking --------------------------------------------------------
@@ -226,7 +139,7 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     sc = metrics.SemanticConsistency()
     per_seq_sc: dict[str, dict[str, float]] = {"per_frame": {}, "fixed": {}}
     per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
-    skeleton = pruned_skeleton(detector.run)
+    skeleton = runs.pruned_skeleton(detector.run)
     for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
         per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
@@ -260,64 +173,12 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     return out
 
 
-def pruned_skeleton(run: Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(parents of the pruned tree, kept-node mask) of a phase-1 run's `skeleton.json`, or None
-    when the run has none (`skeleton.prune` with the intensities stored beside the tree)."""
-    from nmjax.skeleton import load_skeleton, prune
-
-    path = Path(run) / "skeleton.json"
-    if not path.is_file():
-        return None
-    skeleton = load_skeleton(path)
-    intensities = json.loads(path.read_text()).get("intensities")
-    if intensities is None:
-        return np.asarray(skeleton.parents), np.ones(skeleton.num_keypoints, bool)
-    pruned, keep = prune(skeleton, intensities)
-    return np.asarray(pruned.parents), keep
-
-
-# --- interpolation M-CD -------------------------------------------------------------------------
-
-
-def sequence_voxels(seq, sample_rate: int, grid: int) -> np.ndarray:
-    """(S, G, G, G): every `sample_rate`-th frame, one bounding box over the whole sequence."""
-    from nmjax.data.voxelize import normalize_sequence, voxelize
-
-    points, _ = normalize_sequence(np.asarray(seq.vertices[::sample_rate], np.float32))
-    return voxelize(points, grid)
-
-
 def keyframe_starts(num_frames: int, rate: int, max_segments: int) -> np.ndarray:
     """Start keyframes ts = 0, SR, 2 SR, ... with ts + SR inside the sequence, at most M of them."""
     starts = np.arange(0, num_frames - rate, rate)
     if len(starts) > max_segments:
         starts = starts[np.linspace(0, len(starts) - 1, max_segments).astype(int)]
     return starts
-
-
-@dataclasses.dataclass
-class Interpolators:
-    """The compiled interpolation methods on one phase-2 model (and the optional VRNN)."""
-
-    nm: tuple[Any, Any]  # (graphdef, state) of the "nm" dynamics
-    vrnn: tuple[Any, Any] | None
-    trajectories: int
-
-    def run(self, method: str, x_start, x_end, gap: int, key) -> np.ndarray:
-        """(B, gap + 1, K, 4) keypoints of `method` between keyframes (B, K, 4)."""
-        x_start, x_end = jnp.asarray(x_start), jnp.asarray(x_end)
-        if method == "Lerp":
-            return np.asarray(tasks.lerp_keypoints(x_start, x_end, gap))
-        if method == "Slerp":
-            return np.asarray(tasks.slerp_jit(*self.nm, x_start, x_end, key, gap=gap))
-        model = self.nm if method == "Ours" else self.vrnn
-        if model is None:
-            raise ValueError(f"no model for method {method!r}")
-        return np.asarray(
-            tasks.interpolate_jit(
-                *model, x_start[:, None], x_end, key, gap=gap, num_trajectories=self.trajectories
-            )
-        )
 
 
 def evaluate_interpolation(
@@ -368,10 +229,10 @@ def evaluate_interpolation(
             raise ValueError(
                 f"sequence {seq.name!r} of the {split} split has no keypoints in the phase-1 "
                 f"run's keypoints_{split}.npz; re-export them with "
-                f"`nmjax.train.skel.export_keypoints('{detector.run}', '{split}')`"
+                f"`nmjax export-keypoints --run {detector.run}`"
             )
         kp = trajectories[seq.name]
-        vox = sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
+        vox = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
         for rate in rates:
             starts = keyframe_starts(len(kp), rate, max_segments)
             if len(starts) == 0:
@@ -380,7 +241,7 @@ def evaluate_interpolation(
             kp_err: dict[str, list[float]] = {m: [] for m in methods}
             for i in range(0, len(starts), chunk):
                 ts = starts[i : i + chunk]
-                ts = np.concatenate([ts, np.repeat(ts[-1:], chunk - len(ts))])  # fixed shape
+                ts = common.pad_with_last(ts, chunk)  # a fixed shape: one compilation per rate
                 real = min(chunk, len(starts) - i)
                 frames = ts[:, None] + np.arange(rate + 1)  # (chunk, SR + 1)
                 key, sub = jax.random.split(key)
@@ -644,7 +505,7 @@ def evaluate_generation(
       seed: PRNG seed of the samples.
       real_trajectories: {sequence: (T_seq, K, 4)} the real clips are cut from instead of the
         test keypoints, e.g. the detector's keypoints of longer sequences of the same body
-        (`export_keypoints(..., data_root=...)`), so that long horizons have real clips.
+        (`runs.export_keypoints(..., data_root=...)`), so that long horizons have real clips.
 
     Returns:
       {"clips": [[sequence, start]], "methods": {method: {str(N): `generation_measures`}},
@@ -849,32 +710,6 @@ def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
 # --- the command ---------------------------------------------------------------------------------
 
 
-def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig, Path, Path | None]:
-    """(config of the "nm" run, its phase-1 run, the VRNN run given or found beside it).
-
-    Raises:
-      ValueError: `run` is not an "nm" run, or the VRNN run was trained on another phase-1 run.
-    """
-    dyn_cfg = common.load_config(run, DynTrainConfig)
-    if dyn_cfg.model.model != "nm":
-        raise ValueError(
-            f"{run} is a '{dyn_cfg.model.model}' run; give the Neural Marionette ('nm') run "
-            "as --run and the positional baseline as --vrnn-run"
-        )
-    skel_run = Path(dyn_cfg.skel_run)
-    if vrnn_run is None:
-        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run)
-    vrnn_run = Path(vrnn_run)
-    vrnn_skel = common.load_config(vrnn_run, DynTrainConfig).skel_run
-    if not vrnn_skel or Path(vrnn_skel).resolve() != skel_run.resolve():
-        raise ValueError(
-            f"--vrnn-run {vrnn_run} was trained on the phase-1 run {vrnn_skel}, {run} on "
-            f"{skel_run}; compare models of the same skeleton (train the baseline with "
-            f"`nmjax train-dyn --model vrnn --skel-run {skel_run}`)"
-        )
-    return dyn_cfg, skel_run, vrnn_run
-
-
 def evaluate_generation_run(
     run: str | Path,
     *,
@@ -891,30 +726,28 @@ def evaluate_generation_run(
     or found beside it) and hold-last-pose; writes generation.json, generation.md and
     generation.png into `out` (default RUN/eval). `real_keypoints`: an .npz of keypoint
     sequences (the layout of keypoints_test.npz) to cut the real clips from."""
-    from nmjax.train import dyn
-
     run = Path(run)
-    if run_kind(run) != "dyn":
+    if runs.run_kind(run) != "dyn":
         raise ValueError(
             f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
         )
-    _, skel_run, vrnn_run = phase2_runs(run, vrnn_run)
-    skeleton = pruned_skeleton(skel_run)
+    _, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
+    skeleton = runs.pruned_skeleton(skel_run)
     if skeleton is None:
         raise FileNotFoundError(
             f"{skel_run}/skeleton.json not found; run `nmjax extract-skeleton --run {skel_run}`"
         )
-    models = {"Ours": nnx.split(dyn.restore_model(run))}
+    models = {"Ours": nnx.split(runs.restore_dynamics(run))}
     if vrnn_run is not None:
-        models["VRNN"] = nnx.split(dyn.restore_model(vrnn_run))
+        models["VRNN"] = nnx.split(runs.restore_dynamics(vrnn_run))
     settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
     real = None
     if real_keypoints is not None:
-        real = dyn.read_trajectories(Path(real_keypoints))
+        real = runs.read_trajectories(Path(real_keypoints))
         settings["real_keypoints"] = str(real_keypoints)
     gen = evaluate_generation(
         models,
-        dyn.load_trajectories(skel_run, "test"),
+        runs.load_trajectories(skel_run, "test"),
         *skeleton,
         horizons=horizons,
         cond=cond,
@@ -969,12 +802,10 @@ def evaluate_run(
     seed: int = 0,
 ) -> dict:
     """Evaluates a phase-2 run (all tables) or a phase-1 run (Tables 1-2); writes the results."""
-    from nmjax.train import dyn
-
     run = Path(run)
     results: dict[str, Any] = {"run": str(run)}
-    if run_kind(run) == "dyn":
-        dyn_cfg, skel_run, vrnn_run = phase2_runs(run, vrnn_run)
+    if runs.run_kind(run) == "dyn":
+        dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
         results["skel_run"] = str(skel_run)
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
     else:
@@ -982,9 +813,9 @@ def evaluate_run(
     detector = Detector.load(skel_run)
     results["phase1"] = evaluate_phase1(detector, max_crops=max_crops)
     if dyn_cfg is not None:
-        nm = nnx.split(dyn.restore_model(run))
-        vrnn = None if vrnn_run is None else nnx.split(dyn.restore_model(vrnn_run))
-        traj = dyn.load_trajectories(skel_run, "test")
+        nm = nnx.split(runs.restore_dynamics(run))
+        vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
+        traj = runs.load_trajectories(skel_run, "test")
         interp = Interpolators(nm, vrnn, trajectories)
         kp_errors: dict = {}
         results["interpolation"] = evaluate_interpolation(
@@ -1010,93 +841,3 @@ def evaluate_run(
     if "interpolation" in results:
         plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
     return results
-
-
-def parse_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="nmjax evaluate",
-        description="SC-score, 4D-tracking Chamfer and interpolation M-CD (paper Tables 1, 2, 11, "
-        "12) of a phase-2 run (or the phase-1 metrics of a phase-1 run); with --generation, the "
-        "generation measures of a phase-2 run instead.",
-    )
-    parser.add_argument("--run", required=True, help="phase-2 ('nm') or phase-1 run folder")
-    parser.add_argument("--vrnn-run", default=None, help="positional VRNN run (default: found)")
-    parser.add_argument("--out", default=None, help="output folder (default RUN/eval)")
-    parser.add_argument(
-        "--rates", default=",".join(map(str, SAMPLING_RATES)), help="sampling rates SR"
-    )
-    parser.add_argument("--trajectories", type=int, default=16, help="rollouts per keyframe pair")
-    parser.add_argument("--max-segments", type=int, default=4, help="keyframe pairs per sequence")
-    parser.add_argument("--max-crops", type=int, default=8, help="phase-1 test crops per sequence")
-    parser.add_argument("--seed", type=int, default=0)
-    gen = parser.add_argument_group(
-        "generation", "--generation writes RUN/eval/generation.{json,md,png} instead of the tables"
-    )
-    gen.add_argument(
-        "--generation",
-        action="store_true",
-        help="only the generation evaluation: diversity, bone-length error, set distance",
-    )
-    gen.add_argument(
-        "--horizons", default=",".join(map(str, GEN_HORIZONS)), help="generated frames N"
-    )
-    gen.add_argument("--samples", type=int, default=10, help="futures per conditioning clip")
-    gen.add_argument("--cond", type=int, default=5, help="T_cond conditioning frames")
-    gen.add_argument("--clips", type=int, default=4, help="conditioning clips per test sequence")
-    gen.add_argument(
-        "--real-keypoints",
-        default=None,
-        metavar="NPZ",
-        help="keypoint sequences to cut the real clips from (default: the test keypoints); "
-        "longer sequences give real clips at long horizons",
-    )
-    return parser.parse_args(argv)
-
-
-def _integers(text: str, option: str, minimum: int) -> tuple[int, ...]:
-    """'3,5,10' -> (3, 5, 10); a ValueError naming `option` unless all are >= `minimum`."""
-    try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        values = ()
-    if not values or min(values) < minimum:
-        raise ValueError(f"{option} must be comma-separated integers >= {minimum}, got {text!r}")
-    return values
-
-
-def main(argv: list[str]) -> int:
-    args = parse_args(argv)
-    try:
-        rates = _integers(args.rates, "--rates", 1)
-        for name in ("trajectories", "max_segments", "max_crops", "samples", "cond", "clips"):
-            if getattr(args, name) < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1")
-        if args.generation:
-            results = evaluate_generation_run(
-                args.run,
-                vrnn_run=args.vrnn_run,
-                out=args.out,
-                horizons=_integers(args.horizons, "--horizons", 2),
-                cond=args.cond,
-                samples=args.samples,
-                clips=args.clips,
-                seed=args.seed,
-                real_keypoints=args.real_keypoints,
-            )
-            print(generation_markdown(results))
-            return 0
-        results = evaluate_run(
-            args.run,
-            vrnn_run=args.vrnn_run,
-            out=args.out,
-            rates=rates,
-            trajectories=args.trajectories,
-            max_segments=args.max_segments,
-            max_crops=args.max_crops,
-            seed=args.seed,
-        )
-    except (FileNotFoundError, ValueError) as err:
-        print(f"nmjax evaluate: {err}", file=sys.stderr)
-        return 1
-    print(markdown_tables(results))
-    return 0

@@ -1,4 +1,5 @@
-"""Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps (DESIGN §6).
+"""Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps (DESIGN §6),
+and the affinity between keypoints from its free parameters (Eq. 12).
 
 Conventions (DESIGN §4): the coordinate of an n-cell axis is `linspace(-1, 1, n)`, axes in 'ij'
 order (grid axis 0 is x); keypoints are `(..., K, 4)` with xyz in the normalised cube and the
@@ -7,6 +8,7 @@ intensity alpha last. Everything here is pure and works under `jit`, `vmap` and 
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -101,3 +103,28 @@ def gaussian_maps(keypoints: Array, sigma: float, n: int) -> Array:
     px, py, pz = profile[..., 0], profile[..., 1], profile[..., 2]  # (..., n, K)
     maps = jnp.einsum("...ik,...jk,...lk->...ijlk", px, py, pz)
     return maps * alpha[..., None, None, None, :]
+
+
+def affinity_from_params(params: Array) -> Array:
+    """Eq. 12's decomposed affinities A_n from unconstrained parameters.
+
+    Each row is a softmax over the K - 1 other keypoints, scattered into a K x K matrix with a zero
+    diagonal: row i fills columns 0..i-1, i+1..K-1 in order.
+
+    Args:
+        params: (N, K, K-1) (any leading axes allowed: (..., K, K-1)).
+
+    Returns:
+        (..., K, K); rows sum to 1, diagonal 0.
+    """
+    k = params.shape[-2]
+    if params.shape[-1] != k - 1:
+        raise ValueError(f"affinity_from_params: expected (..., K, K-1) params, got {params.shape}")
+    soft = jax.nn.softmax(params, axis=-1)
+    rows = jnp.arange(k)[:, None]
+    cols = jnp.arange(k)[None, :]
+    source = jnp.clip(cols - (cols > rows), 0, max(k - 2, 0))  # column j<-param j, or j-1 past i
+    gathered = jnp.take_along_axis(
+        soft, jnp.broadcast_to(source, (*soft.shape[:-2], k, k)), axis=-1
+    )
+    return jnp.where(rows == cols, 0.0, gathered)

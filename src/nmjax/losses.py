@@ -15,6 +15,9 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+# Eq. 12 lives with the keypoint maps (the detector needs it without the losses); re-exported
+# because the graph terms below are stated on its output.
+from nmjax.keypoints import affinity_from_params as affinity_from_params
 from nmjax.keypoints import coord_grid
 
 if TYPE_CHECKING:
@@ -172,31 +175,6 @@ def volume_fitting(voxels: Array, keypoints: Array) -> Array:
 
 
 # --- affinity (Eqs. 12-17) ---------------------------------------------------------------------
-
-
-def affinity_from_params(params: Array) -> Array:
-    """Eq. 12's decomposed affinities A_n from unconstrained parameters.
-
-    Each row is a softmax over the K - 1 other keypoints, scattered into a K x K matrix with a zero
-    diagonal: row i fills columns 0..i-1, i+1..K-1 in order.
-
-    Args:
-        params: (N, K, K-1) (any leading axes allowed: (..., K, K-1)).
-
-    Returns:
-        (..., K, K); rows sum to 1, diagonal 0.
-    """
-    k = params.shape[-2]
-    if params.shape[-1] != k - 1:
-        raise ValueError(f"affinity_from_params: expected (..., K, K-1) params, got {params.shape}")
-    soft = jax.nn.softmax(params, axis=-1)
-    rows = jnp.arange(k)[:, None]
-    cols = jnp.arange(k)[None, :]
-    source = jnp.clip(cols - (cols > rows), 0, max(k - 2, 0))  # column j<-param j, or j-1 past i
-    gathered = jnp.take_along_axis(
-        soft, jnp.broadcast_to(source, (*soft.shape[:-2], k, k)), axis=-1
-    )
-    return jnp.where(rows == cols, 0.0, gathered)
 
 
 def graph_local(keypoints: Array, affinity: Array, intensity_weighted: bool = False) -> Array:
@@ -423,7 +401,7 @@ def skeleton_loss(
     Args:
         outputs: {"voxels": (B, T, G, G, G) occupancy, "recon": (B, T, G, G, G) probabilities,
             "heatmaps": (B, T, g, g, g, K), "keypoints": (B, T, K, 4),
-            "affinity": (N, K, K) (e.g. from `affinity_from_params`)}.
+            "affinity": (N, K, K) (e.g. from `keypoints.affinity_from_params`)}.
         weights: `nmjax.config.LossWeights` (weights, sep_sigma, intensity_weighted).
 
     Returns:

@@ -18,17 +18,20 @@ between them.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import geometry
+from nmjax import geometry, io, runs
 from nmjax.models.dynamics import Dynamics, bone_lengths
+from nmjax.train import common
 
 # --- generation -----------------------------------------------------------------------------
 
@@ -372,3 +375,279 @@ def normalization_of(points: np.ndarray) -> tuple[np.ndarray, float]:
     bmin = points.min(axis=0)
     scale = 2.0 / (float(np.max(points.max(axis=0) - bmin)) + 1e-5)
     return bmin, scale
+
+
+# --- on run folders: the task commands (`nmjax generate`, `interpolate`, `retarget`) ----------
+#
+# Inputs are the test-split keypoint trajectories of the phase-1 run (keypoints_test.npz). Each
+# writes into `out` (default `RUN/<command>`): the keypoints as .npz, a GIF of the motion and a
+# PNG strip of frames; `run_retarget` also writes one .obj per frame.
+
+
+def pick_inputs(
+    trajectories: dict[str, np.ndarray], count: int, frames: int, names: list[str] | None = None
+) -> tuple[list[str], np.ndarray]:
+    """The first `count` sequences (sorted names, or `names`), frames 0..frames-1 of each.
+
+    Sequences shorter than `frames` are padded with their last frame. Returns (names, (I, F, K, 4)).
+    """
+    chosen = sorted(trajectories) if names is None else names
+    missing = [n for n in chosen if n not in trajectories]
+    if missing:
+        raise ValueError(f"no test sequence named {missing}; available: {sorted(trajectories)}")
+    chosen = chosen[:count]
+    crops = [common.pad_with_last(trajectories[name][:frames], frames) for name in chosen]
+    return chosen, np.stack(crops).astype(np.float32)
+
+
+@dataclasses.dataclass
+class Interpolators:
+    """The compiled interpolation methods on one phase-2 model (and the optional VRNN)."""
+
+    nm: tuple[Any, Any]  # (graphdef, state) of the "nm" dynamics
+    vrnn: tuple[Any, Any] | None
+    trajectories: int
+
+    def run(self, method: str, x_start, x_end, gap: int, key) -> np.ndarray:
+        """(B, gap + 1, K, 4) keypoints of `method` between keyframes (B, K, 4)."""
+        x_start, x_end = jnp.asarray(x_start), jnp.asarray(x_end)
+        if method == "Lerp":
+            return np.asarray(lerp_keypoints(x_start, x_end, gap))
+        if method == "Slerp":
+            return np.asarray(slerp_jit(*self.nm, x_start, x_end, key, gap=gap))
+        model = self.nm if method == "Ours" else self.vrnn
+        if model is None:
+            raise ValueError(f"no model for method {method!r}")
+        return np.asarray(
+            interpolate_jit(
+                *model, x_start[:, None], x_end, key, gap=gap, num_trajectories=self.trajectories
+            )
+        )
+
+
+# --- generate -------------------------------------------------------------------------------
+
+
+def run_generate(
+    run: str | Path,
+    *,
+    cond: int = 5,
+    gen: int = 25,
+    samples: int = 3,
+    inputs: int = 2,
+    seed: int = 0,
+    voxels: bool = False,
+    out: str | Path | None = None,
+) -> Path:
+    """Motion generation for the first `inputs` test sequences; returns the output folder.
+
+    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), observed (I, T, K, 4) - the true
+    continuation, padded with its last frame where the sequence is shorter (long horizons) -
+    observed_frames (I,) the real frames of it, names, parents), optionally voxels.npz (decoded
+    occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
+    samples).
+    """
+    from nmjax.tasks_cli import write_motion_pictures
+
+    model, cfg, skel_run = runs.load_phase2(run)
+    out = Path(out) if out is not None else Path(run) / "generate"
+    trajectories = runs.load_trajectories(skel_run, "test")
+    names, observed = pick_inputs(trajectories, inputs, cond + gen)
+    real_frames = np.array([min(len(trajectories[n]), cond + gen) for n in names], np.int32)
+    graphdef, state = nnx.split(model)
+    keypoints, _ = generate_jit(
+        graphdef,
+        state,
+        jnp.asarray(observed[:, :cond]),
+        jax.random.key(seed),
+        num_frames=gen,
+        num_samples=samples,
+    )
+    keypoints = np.asarray(keypoints)
+    io.save_npz(
+        out / "generate.npz",
+        keypoints=keypoints,
+        observed=observed,
+        observed_frames=real_frames,
+        names=np.array(names),
+        parents=np.array(model.parents),
+        cond=np.int32(cond),
+    )
+    if voxels:
+        from nmjax.data.datasets import load_sequences
+
+        detector = runs.Detector.load(skel_run)
+        data = detector.cfg.data
+        seqs = {s.name: s for s in load_sequences(data.name, "test", data.root)}
+        first = np.stack(
+            [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
+        )
+        decoded = [detector.decode(keypoints[:, s], first) for s in range(samples)]
+        io.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
+    for i, name in enumerate(names):
+        motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
+        held = real_frames[i] < cond + gen  # the sequence ends before the horizon
+        labels = [f"observed (held from {real_frames[i]})" if held else "observed"]
+        labels += [f"sample {s}" for s in range(samples)]
+        write_motion_pictures(out / name, motions, labels, model.parents)
+    return out
+
+
+# --- interpolate ----------------------------------------------------------------------------
+
+
+def run_interpolate(
+    run: str | Path,
+    *,
+    gap: int = 10,
+    trajectories: int = 16,
+    inputs: int = 2,
+    vrnn_run: str | Path | None = None,
+    seed: int = 0,
+    out: str | Path | None = None,
+) -> Path:
+    """Interpolation between frames 0 and `gap` of the first `inputs` test sequences.
+
+    Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names, parents) and per input a
+    GIF and PNG strip with one panel per method and the truth.
+    """
+    from nmjax.tasks_cli import write_motion_pictures
+
+    model, cfg, skel_run = runs.load_phase2(run)
+    out = Path(out) if out is not None else Path(run) / "interpolate"
+    names, truth = pick_inputs(runs.load_trajectories(skel_run, "test"), inputs, gap + 1)
+    vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
+    interp = Interpolators(nnx.split(model), vrnn, trajectories)
+    methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
+    key = jax.random.key(seed)
+    results = {m: interp.run(m, truth[:, 0], truth[:, -1], gap, key) for m in methods}
+    io.save_npz(
+        out / "interpolate.npz",
+        truth=truth,
+        names=np.array(names),
+        parents=np.array(model.parents),
+        **results,
+    )
+    for i, name in enumerate(names):
+        motions = [truth[i]] + [results[m][i] for m in methods]
+        write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
+    return out
+
+
+# --- retarget -------------------------------------------------------------------------------
+
+
+def detect_target_joints(detector: runs.Detector, points: np.ndarray) -> np.ndarray:
+    """Keypoints (K, 4) of one normalised point cloud, the frame repeated over a T-frame crop."""
+    from nmjax.data.voxelize import voxelize
+
+    cfg = detector.cfg
+    grid = voxelize(points, cfg.data.grid)
+    crop = np.broadcast_to(grid, (1, cfg.data.frames, *grid.shape))
+    keypoints, _ = detector.run_batches(np.ascontiguousarray(crop))
+    return keypoints[0, 0]
+
+
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """A triangle mesh as Wavefront .obj text, atomically."""
+    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    io.write_text(path, "\n".join(lines) + "\n")
+
+
+def run_retarget(
+    run: str | Path,
+    target: str | Path,
+    *,
+    source: str | None = None,
+    frames: int = 30,
+    points: int = 20000,
+    seed: int = 0,
+    out: str | Path | None = None,
+) -> Path:
+    """Retargets a test motion of the run onto a target mesh (Fig. 6, appendix D.4).
+
+    1. Target skeleton: `points` surface samples of the mesh, normalised (DESIGN section 4),
+       voxelised, keypoints by the phase-1 detector; topology = the run's skeleton.
+    2. Source motion: local rotations and root trajectory inferred by the dynamics posterior
+       (best of S) from the source keypoints.
+    3. Eqs. 24-25 give the retargeted joints; target rest rotations are the posterior's rotations
+       of the target pose, corrected onto its bones (`rest_rotations`).
+    4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS; the result
+       is mapped back to the mesh's units and written as frame_XXXX.obj plus a GIF.
+
+    Returns:
+      the output folder.
+    """
+    from nmjax.skeleton import skin_weights
+    from nmjax.tasks_cli import write_motion_pictures
+
+    mesh = load_mesh(target)
+    model, cfg, skel_run = runs.load_phase2(run)
+    out = Path(out) if out is not None else Path(run) / f"retarget-{Path(target).stem}"
+    trajectories = runs.load_trajectories(skel_run, "test")
+    names = None if source is None else [source]
+    (name,), x_src = pick_inputs(trajectories, 1, frames, names)
+    skeleton = runs.read_skeleton(skel_run)
+    intensities = runs.skeleton_intensities(skel_run)
+
+    # Target pose in its own normalised frame.
+    bmin, scale = normalization_of(mesh.vertices)
+    cloud = (sample_mesh_points(mesh, points, seed) - bmin) * scale - 1.0
+    detector = runs.Detector.load(skel_run)
+    target_kp = detect_target_joints(detector, cloud.astype(np.float32))
+    vertices = (np.asarray(mesh.vertices) - bmin) * scale - 1.0
+
+    graphdef, state = nnx.split(model)
+    key_src, key_tar = jax.random.split(jax.random.key(seed))
+    src_rot, src_rec = infer_rotations_jit(graphdef, state, jnp.asarray(x_src), key_src)
+    tar_in = jnp.asarray(np.repeat(target_kp[None, None], 2, axis=1))
+    tar_rot, _ = infer_rotations_jit(graphdef, state, tar_in, key_tar)
+    parents, order, root = model.parents, model.order, model.order[0]
+    directions = model.directions[...]
+    target_mu = jnp.asarray(target_kp[:, :3])
+    _, tar_glob = retarget_joints(
+        target_mu[root][None], tar_rot[0, :1], directions, target_mu, parents, order
+    )
+    rest_rot = rest_rotations(jnp.asarray(target_kp[:, :3]), tar_glob[0], directions, parents)
+    root_path = (
+        jnp.asarray(target_kp[root, :3]) + src_rec[0, :, root, :3] - src_rec[0, :1, root, :3]
+    )
+    joints, glob = retarget_joints(
+        root_path, src_rot[0], directions, jnp.asarray(target_kp[:, :3]), parents, order
+    )
+    weights = skin_weights(vertices, target_kp[:, :3], skeleton, intensities=intensities)
+    moved = retarget_vertices(
+        jnp.asarray(vertices, jnp.float32),
+        jnp.asarray(weights),
+        jnp.asarray(target_kp[:, :3]),
+        rest_rot,
+        joints,
+        glob,
+    )
+    moved_mesh = (np.asarray(moved, np.float64) + 1.0) / scale + bmin  # back to mesh units
+    faces = np.asarray(mesh.faces)
+    for t, verts in enumerate(moved_mesh):
+        write_obj(out / f"frame_{t:04d}.obj", verts, faces)
+    joints_mesh = (np.asarray(joints) + 1.0) / scale + bmin
+    src_mu = np.asarray(x_src[0])
+    io.save_npz(
+        out / "retarget.npz",
+        source_keypoints=src_mu,
+        target_keypoints=target_kp,
+        joints=joints_mesh.astype(np.float32),
+        skin_weights=weights,
+        parents=np.array(parents),
+        source=np.array(name),
+    )
+    # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
+    sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)
+    tri_centres = np.asarray(moved)[:, faces[sub]].mean(axis=2)  # (T, P, 3) a surface sketch
+    write_motion_pictures(
+        out / "retarget",
+        [src_mu, np.asarray(joints)],
+        [f"source {name}", f"retargeted {Path(target).name}"],
+        parents,
+        clouds=[None, tri_centres],
+    )
+    return out

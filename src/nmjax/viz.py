@@ -37,11 +37,10 @@ def save_figure(
 
 def strongest_edges(affinity: np.ndarray) -> list[tuple[int, int, float]]:
     """For each keypoint k its most affine other keypoint under max_n A_n: (k, k', a_kk')."""
-    influence = np.asarray(affinity)
-    if influence.ndim == 3:
-        influence = influence.max(axis=0)
-    influence = influence.copy()
-    np.fill_diagonal(influence, -np.inf)
+    from nmjax.skeleton import influence as max_over_n
+
+    influence = max_over_n(affinity)
+    np.fill_diagonal(influence, -np.inf)  # never its own partner
     partners = influence.argmax(axis=1)
     return [(k, int(j), float(influence[k, j])) for k, j in enumerate(partners)]
 

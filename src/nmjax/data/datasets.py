@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax.config import DATASETS
+from nmjax.config import DATASETS, dataset_spec
 
 REAL_DATASETS = ("hanco", "aist", "dfaust", "animals", "panda")
 SYNTHETIC_DATASETS = tuple(name for name, spec in DATASETS.items() if spec.synthetic)
@@ -66,14 +66,9 @@ class Sequence:
         return int(self.vertices.shape[0])
 
 
-def _check_name(name: str) -> None:
-    if name not in DATASETS:
-        raise ValueError(f"unknown dataset {name!r}; valid names: {', '.join(sorted(DATASETS))}")
-
-
 def dataset_root(name: str, root: str | os.PathLike | None = None) -> Path:
     """Folder of dataset `name`: `root` if given, else `$NMJAX_DATA/<name>`, else `data/<name>`."""
-    _check_name(name)
+    dataset_spec(name)  # unknown names list the valid ones
     if root is not None:
         return Path(root)
     base = os.environ.get("NMJAX_DATA")
@@ -106,11 +101,17 @@ def _open_array(path: Path) -> np.ndarray:
 
 
 def _check_finite(path: Path, array: np.ndarray, what: str) -> None:
+    # Checked in float32, the dtype the loaders return: a float64 value beyond its range would
+    # pass a float64 check and become inf.
     for start in range(0, array.shape[0], _CHECK_CHUNK):
-        chunk = np.asarray(array[start : start + _CHECK_CHUNK])
+        with np.errstate(over="ignore", invalid="ignore"):
+            chunk = np.asarray(array[start : start + _CHECK_CHUNK], np.float32)
         if not np.isfinite(chunk).all():
             bad = start + int(np.argwhere(~np.isfinite(chunk))[0, 0])
-            raise ValueError(f"{path}: {what} contain NaN or inf (first at frame {bad})")
+            raise ValueError(
+                f"{path}: {what} contain NaN, inf or values beyond the float32 range (first at "
+                f"frame {bad})"
+            )
 
 
 def read_vertices(path: str | os.PathLike) -> np.ndarray:

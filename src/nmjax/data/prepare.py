@@ -1,4 +1,4 @@
-"""`nmjax prepare-data`: write a dataset in the nmjax layout (see `nmjax.data.datasets`).
+"""Write a dataset in the nmjax layout (see `nmjax.data.datasets`); `nmjax prepare-data`.
 
     nmjax prepare-data --data synth-hand [--sequences N] [--frames N] [--seed S]
     nmjax prepare-data --data dfaust --from RAW_DIR [--root DIR] [--points 20000]
@@ -14,11 +14,9 @@ never leaves a dataset that loads as complete.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -192,86 +190,61 @@ def prepare_meshes(
     return root
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="nmjax prepare-data",
-        description="Write a dataset in the layout <root>/<split>/{vertices,joints}/<seq>.npy",
-    )
-    parser.add_argument("--data", required=True, help=f"one of {', '.join(sorted(DATASETS))}")
-    parser.add_argument(
-        "--from",
-        dest="source",
-        metavar="DIR",
-        type=Path,
-        help="real datasets: folder of raw sequences, one sub-folder of mesh frames per sequence",
-    )
-    parser.add_argument(
-        "--root", type=Path, metavar="DIR", help="output folder (default data/<name>)"
-    )
-    parser.add_argument("--seed", type=int, default=0, help="sampling / generation seed")
-    parser.add_argument("--sequences", type=int, help="number of sequences (default: all)")
-    parser.add_argument("--frames", type=int, help="frames per sequence (default: all)")
-    parser.add_argument("--points", type=int, default=DEFAULT_POINTS, help="points per frame")
-    parser.add_argument(
-        "--overwrite", action="store_true", help="replace a dataset already prepared at --root"
-    )
-    return parser
+def prepare_dataset(
+    name: str,
+    *,
+    source: Path | None = None,
+    root: Path | None = None,
+    seed: int = 0,
+    sequences: int | None = None,
+    frames: int | None = None,
+    points: int = DEFAULT_POINTS,
+    overwrite: bool = False,
+) -> Path | None:
+    """Writes dataset `name` into `root` (default data/<name>): generated for a synthetic name,
+    converted from the raw mesh sequences in `source` for a real one.
 
+    Returns:
+      The dataset folder, or None when `root` already holds a prepared `name` and not
+      `overwrite` (nothing is changed then).
 
-def main(argv: list[str]) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return _run(args)
-    except (FileNotFoundError, ValueError) as err:
-        print(f"nmjax prepare-data: {err}", file=sys.stderr)
-        return 1
-
-
-def _fail(message: str) -> int:
-    print(f"nmjax prepare-data: {message}", file=sys.stderr)
-    return 2
-
-
-def _run(args: argparse.Namespace) -> int:
-    dataset_spec(args.data)
-    for flag, least in (("sequences", 1), ("frames", 2), ("points", 1)):
-        value = getattr(args, flag)
+    Raises:
+      ValueError: an unknown name, counts below their minimum, or `source` given for a synthetic
+        set / missing for a real one.
+    """
+    dataset_spec(name)
+    for flag, value, least in (("sequences", sequences, 1), ("frames", frames, 2)):
         if value is not None and value < least:
-            return _fail(f"--{flag} must be >= {least}, got {value}")
-    synthetic_data = args.data in SYNTHETIC_DATASETS
-    if synthetic_data and args.source is not None:
-        return _fail(f"{args.data} is generated; --from is only for real datasets")
-    if not synthetic_data and args.source is None:
-        return _fail(
-            f"--data {args.data} needs --from DIR, the raw mesh sequences (one folder of "
+            raise ValueError(f"--{flag} must be >= {least}, got {value}")
+    if points < 1:
+        raise ValueError(f"--points must be >= 1, got {points}")
+    synthetic_data = name in SYNTHETIC_DATASETS
+    if synthetic_data and source is not None:
+        raise ValueError(f"{name} is generated; --from is only for real datasets")
+    if not synthetic_data and source is None:
+        raise ValueError(
+            f"--data {name} needs --from DIR, the raw mesh sequences (one folder of "
             ".obj/.ply/.off frames per sequence); or use --data synth-hand"
         )
-    root = dataset_root(args.data, args.root)
+    root = dataset_root(name, root)
     if (root / "meta.json").is_file():
-        if not args.overwrite:
-            print(f"{root} already holds a prepared {args.data!r}; pass --overwrite to replace it")
-            return 0
+        if not overwrite:
+            return None
         _clear(root)
     if synthetic_data:
         from nmjax.data import synthetic  # lazy: only synthetic sets need the generator
 
         synthetic.generate(
-            args.data,
-            root,
-            num_sequences=args.sequences,
-            frames=args.frames,
-            points=args.points,
-            seed=args.seed,
+            name, root, num_sequences=sequences, frames=frames, points=points, seed=seed
         )
     else:
         prepare_meshes(
-            args.data,
-            args.source,
+            name,
+            source,
             root,
-            points=args.points,
-            seed=args.seed,
-            max_sequences=args.sequences,
-            max_frames=args.frames,
+            points=points,
+            seed=seed,
+            max_sequences=sequences,
+            max_frames=frames,
         )
-    print(f"wrote {args.data} to {root}")
-    return 0
+    return root

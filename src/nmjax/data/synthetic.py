@@ -33,11 +33,9 @@ bytes. Units are arbitrary; every body is about one unit across, with z up.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 import re
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -1005,27 +1003,3 @@ def generate(
         },
     )
     return root
-
-
-def main(argv: list[str] | None = None) -> int:
-    """`python -m nmjax.data.synthetic NAME --root DIR ...`: generate one set and time it."""
-    parser = argparse.ArgumentParser(
-        prog="python -m nmjax.data.synthetic", description=main.__doc__
-    )
-    parser.add_argument("name", choices=sorted(BODIES))
-    parser.add_argument("--root", type=Path, help="output folder (default data/NAME)")
-    parser.add_argument("--num-sequences", type=int)
-    parser.add_argument("--frames", type=int)
-    parser.add_argument("--points", type=int, default=20000)
-    parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
-    args.root = args.root or Path("data") / args.name
-    begin = time.perf_counter()
-    root = generate(**vars(args))  # the options are named as generate's arguments
-    size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
-    print(f"wrote {root} ({size / 2**20:.0f} MiB) in {time.perf_counter() - begin:.1f} s")
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

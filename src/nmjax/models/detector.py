@@ -14,7 +14,6 @@ import jax.numpy as jnp
 from flax import nnx
 
 from nmjax import keypoints as kp_lib
-from nmjax import losses
 from nmjax.config import DetectorConfig
 from nmjax.models.blocks import (
     LEAK,
@@ -132,7 +131,7 @@ class KeypointDetector(nnx.Module):
 
     def affinity(self) -> jax.Array:
         """(N, K, K) row-softmaxed affinity with zero diagonal (Eq. 12)."""
-        return losses.affinity_from_params(self.affinity_params[...])
+        return kp_lib.affinity_from_params(self.affinity_params[...])
 
     def detect(self, voxels: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Heatmaps and keypoints of every frame.
@@ -180,8 +179,8 @@ class KeypointDetector(nnx.Module):
           voxels: (B, T, G, G, G) float32 occupancy.
 
         Returns:
-          dict with "voxels" (the input), "recon" (B,T,G,G,G) probabilities, "heatmaps"
-          (B,T,g,g,g,K), "keypoints" (B,T,K,4) and "affinity" (N,K,K): the inputs of
+          dict with "recon" (B,T,G,G,G) probabilities, "heatmaps" (B,T,g,g,g,K), "keypoints"
+          (B,T,K,4) and "affinity" (N,K,K): with the batch ("voxels", "joints"), the inputs of
           `nmjax.losses.skeleton_loss`.
         """
         g = self.cfg.grid
@@ -192,7 +191,6 @@ class KeypointDetector(nnx.Module):
         heatmaps, keypoints, feats = self.detect(voxels)
         recon = self.decode(keypoints, feats[:, 0], voxels[:, 0])
         return {
-            "voxels": voxels,
             "recon": recon,
             "heatmaps": heatmaps,
             "keypoints": keypoints,

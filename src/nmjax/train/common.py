@@ -1,8 +1,10 @@
-"""Pieces shared by both trainers: optimizer, run folders, orbax checkpoints, metric logging.
+"""Pieces shared by both trainers: the training loop, optimizer, run folders, orbax checkpoints,
+metric logging, resume rules.
 
 A training state is the pytree `nnx.state((model, optimizer))` of a model and its
-`nnx.Optimizer`, split once with `nnx.split`; the trainers jit a step over that pytree and hand it
-to `Checkpointer` unchanged.
+`nnx.Optimizer`, split once with `nnx.split`; each phase jits one module-level step over that
+pytree (graphdef and settings static, state donated), and `train_loop` drives it, hands the state
+to `Checkpointer` unchanged and logs what the step returns.
 """
 
 from __future__ import annotations
@@ -12,9 +14,10 @@ import gc
 import json
 import math
 import shutil
+import time
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -23,12 +26,29 @@ import jax
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
+from flax import nnx
 from orbax.checkpoint import checkpoint_managers as ocp_policies
 
 from nmjax import io
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
+CHECKPOINTS = "checkpoints"
+# Fields a resumed run may change: how long it trains and what it reports, not what it computes.
+RESUMABLE_FIELDS = frozenset(
+    {"steps", "log_every", "val_every", "ckpt_every", "time_limit_minutes", "run", "data.root"}
+)
+
+
+class NonFiniteLossError(RuntimeError):
+    """The training loss became NaN or infinite."""
+
+
+def check_positive(cfg: Any, names: tuple[str, ...]) -> None:
+    """Raises ValueError naming the first field of `names` in `cfg` that is below 1."""
+    for name in names:
+        if getattr(cfg, name) < 1:
+            raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
 
 
 def make_optimizer(
@@ -74,6 +94,63 @@ def make_optimizer(
     return optax.chain(optax.clip_by_global_norm(clip_norm), adam)
 
 
+@dataclasses.dataclass(frozen=True)
+class OptimizerSettings:
+    """The optimizer of `make_optimizer`, hashable: the compiled steps take it as a static
+    argument and build the optax transformation inside the trace, so two runs of one
+    configuration share one compiled step."""
+
+    learning_rate: float
+    milestones: tuple[int, ...] = ()
+    decay: tuple[float, ...] = ()
+    clip_norm: float | None = 1.0
+
+    @classmethod
+    def of(cls, cfg: Any) -> OptimizerSettings:
+        """From a train config (phase 2 has no learning-rate milestones)."""
+        milestones = tuple(getattr(cfg, "lr_milestones", ()))
+        decay = tuple(getattr(cfg, "lr_decay", ()))
+        return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm)
+
+    def make(self) -> optax.GradientTransformation:
+        return make_optimizer(self.learning_rate, self.milestones, self.decay, self.clip_norm)
+
+
+def init_state(model: Any, optimizer: OptimizerSettings) -> tuple[Any, dict[str, Any]]:
+    """(graphdef, {"model": model state, "opt": optax state of its nnx.Param}) of a new model."""
+    graphdef, model_state = nnx.split(model)
+    return graphdef, {
+        "model": model_state,
+        "opt": optimizer.make().init(nnx.state(model, nnx.Param)),
+    }
+
+
+def apply_gradients(
+    model: Any, grads: Any, opt_state: Any, optimizer: OptimizerSettings
+) -> dict[str, Any]:
+    """Inside a step: one optimizer update of `model`'s nnx.Param; the new {"model", "opt"}."""
+    params = nnx.state(model, nnx.Param)
+    updates, opt_state = optimizer.make().update(grads, opt_state, params)
+    nnx.update(model, optax.apply_updates(params, updates))
+    return {"model": nnx.state(model), "opt": opt_state}
+
+
+def abstract_state(state: Any) -> Any:
+    """Shapes, dtypes and shardings of `state`: a restore target that keeps its placement."""
+    return jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)),
+        state,
+    )
+
+
+def pad_with_last(x: np.ndarray, length: int) -> np.ndarray:
+    """`x` (N, ...) extended to at least `length` along axis 0 by repeating its last entry (a
+    sequence's last frame, a batch's last crop); unchanged when it is long enough."""
+    if len(x) >= length:
+        return x
+    return np.concatenate([x, np.repeat(x[-1:], length - len(x), axis=0)])
+
+
 def config_to_dict(config: Any) -> dict[str, Any]:
     """`dataclasses.asdict`, with tuples turned into lists so that it round-trips through JSON."""
     return json.loads(json.dumps(dataclasses.asdict(config)))
@@ -112,14 +189,87 @@ def _convert(hint: Any, value: Any, *, source: str) -> Any:
     return value
 
 
+def check_run_dir(path: str | Path, *, resume: bool, config: Any, overwrite: bool = False) -> None:
+    """Every refusal `prepare_run_dir` can make, without writing anything.
+
+    With `resume` the folder must hold a config.json that `config` differs from only in
+    `RESUMABLE_FIELDS`, and at least one complete checkpoint.
+
+    Raises:
+      FileNotFoundError: `resume` and the folder, its config.json or its checkpoints are missing.
+      ValueError: the folder exists and holds files, and neither `resume` nor `overwrite` is set;
+        or `resume` with a configuration that changes what the run computes.
+    """
+    path = Path(path)
+    if not resume:
+        if path.exists() and (not path.is_dir() or any(path.iterdir())) and not overwrite:
+            raise ValueError(
+                f"run folder {path} already exists; pass --resume to continue it, --overwrite to "
+                "replace it, or choose another --run"
+            )
+        return
+    if not path.is_dir():
+        raise FileNotFoundError(
+            f"cannot resume: run folder {path} does not exist; drop --resume to start a new run"
+        )
+    check_resume_config(load_config(path, type(config)), config, path)
+    if not checkpoint_steps(path / CHECKPOINTS):
+        raise FileNotFoundError(
+            f"cannot resume {path}: it has no complete checkpoint; start it again with "
+            "--overwrite (or drop --resume with a new --run)"
+        )
+
+
+def check_resume_config(saved: Any, config: Any, path: str | Path) -> None:
+    """Refuses (ValueError naming the fields) a resume whose config changes more than
+    `RESUMABLE_FIELDS` of the run's saved one."""
+    old, new = _flatten(config_to_dict(saved)), _flatten(config_to_dict(config))
+    changed = sorted(
+        k for k in old.keys() | new.keys() if old.get(k) != new.get(k) and k not in RESUMABLE_FIELDS
+    )
+    if changed:
+        diffs = ", ".join(f"{k} (run: {old.get(k)!r}, asked: {new.get(k)!r})" for k in changed)
+        raise ValueError(
+            f"--resume continues {path} with its own configuration, but the command changes "
+            f"{diffs}; drop those options (only --steps and the log/val/checkpoint cadence may "
+            "change) or start a new run with --run"
+        )
+
+
+def _flatten(tree: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in tree.items():
+        if isinstance(value, Mapping):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def checkpoint_steps(directory: str | Path) -> list[int]:
+    """The complete checkpoint steps in `directory`, without creating or cleaning anything.
+
+    Orbax writes a step into a temporary folder and renames it when the save is complete, so a
+    process killed mid-save leaves only a `<step>.orbax-checkpoint-tmp-*` folder, which is not a
+    step here (the next `Checkpointer` removes it).
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        return []
+    return sorted(int(p.name) for p in directory.iterdir() if p.is_dir() and p.name.isdigit())
+
+
 def prepare_run_dir(
     path: str | Path, *, resume: bool, config: Any, overwrite: bool = False
 ) -> Path:
     """Creates (or reopens, with `resume`) a run folder and writes `config.json` into it.
 
+    Nothing is written before every check of `check_run_dir` has passed.
+
     Args:
       path: the run folder.
-      resume: continue an existing run; the folder must exist.
+      resume: continue an existing run; the folder must hold a checkpoint and a config that
+        `config` changes only in `RESUMABLE_FIELDS`.
       config: a dataclass; `dataclasses.asdict(config)` is written to `<path>/config.json`.
       overwrite: delete an existing folder and start afresh (ignored with `resume`).
 
@@ -127,21 +277,11 @@ def prepare_run_dir(
       The run folder as a Path.
 
     Raises:
-      FileNotFoundError: `resume` and the folder does not exist.
-      ValueError: the folder exists and holds files, and neither `resume` nor `overwrite` is set.
+      FileNotFoundError, ValueError: see `check_run_dir`.
     """
     path = Path(path)
-    if resume:
-        if not path.is_dir():
-            raise FileNotFoundError(
-                f"cannot resume: run folder {path} does not exist; drop --resume to start a new run"
-            )
-    elif path.exists() and (not path.is_dir() or any(path.iterdir())):
-        if not overwrite:
-            raise ValueError(
-                f"run folder {path} already exists; pass --resume to continue it, --overwrite to "
-                "replace it, or choose another --run"
-            )
+    check_run_dir(path, resume=resume, config=config, overwrite=overwrite)
+    if not resume and path.exists() and (not path.is_dir() or any(path.iterdir())):
         if path.is_dir():
             shutil.rmtree(path)
         else:
@@ -390,3 +530,133 @@ def read_metrics(run_dir: str | Path) -> list[dict[str, float]]:
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found; has the run logged anything yet?")
     return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+# --- the training loop ------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Cadence:
+    """When the loop logs, validates and checkpoints (every `*_every` steps and at the end)."""
+
+    steps: int
+    log_every: int
+    val_every: int
+    ckpt_every: int
+    time_limit_minutes: float = 0.0
+
+    @classmethod
+    def of(cls, cfg: Any) -> Cadence:
+        return cls(
+            cfg.steps,
+            cfg.log_every,
+            cfg.val_every,
+            cfg.ckpt_every,
+            getattr(cfg, "time_limit_minutes", 0.0),
+        )
+
+
+def train_loop(
+    state: Any,
+    start: int,
+    *,
+    cadence: Cadence,
+    train_step: Callable[[Any, int], tuple[Any, Mapping[str, jax.Array]]],
+    validate: Callable[[int, Any], dict[str, float]],
+    checkpointer: Checkpointer,
+    writer: Any,
+    data_iter: grain.DatasetIterator | None = None,
+    progress: bool = True,
+    desc: str | None = None,
+    step_hook: Callable[[int, Any], Any] | None = None,
+) -> tuple[int, Any, dict[str, float]]:
+    """The one training loop of both phases: step, log, validate, checkpoint, stop on NaN.
+
+    The step's metrics stay on the device; the loop fetches them (one transfer for all the losses
+    since the last fetch) only when it logs, validates or checkpoints, so it never waits for a
+    step it does not report. A non-finite loss is found at that point, before a checkpoint of
+    the broken state could be written.
+
+    Args:
+      state: the training state (donated to `train_step`).
+      start: steps already taken (a resumed run's checkpoint step).
+      cadence: total steps and the log / validation / checkpoint intervals.
+      train_step: `(state, step) -> (state, metrics)`, `step` the steps taken before it; the
+        metrics hold "loss".
+      validate: `(step, state) -> scalars` (named "val/..."), called every `val_every` steps.
+      checkpointer: where the state goes every `ckpt_every` steps (with the validation scalars
+        when it keeps a best checkpoint).
+      writer: `write_scalars(step, dict)`.
+      data_iter: the grain iterator saved with each checkpoint (exact resume), if any.
+      progress, desc: the tqdm bar.
+      step_hook: test hook `(step, state) -> state` applied before each step.
+
+    Returns:
+      (steps taken, final state, the last validation scalars).
+
+    Raises:
+      NonFiniteLossError: the loss became NaN/inf; the message gives the first such step, and the
+        last good checkpoint stays on disk.
+    """
+    from tqdm import tqdm
+
+    pbar = tqdm(
+        total=cadence.steps, initial=start, disable=not progress, dynamic_ncols=True, desc=desc
+    )
+    limit = 60.0 * cadence.time_limit_minutes
+    deadline = time.perf_counter() + limit if limit > 0 else math.inf
+    t_last, step_last = time.perf_counter(), start
+    pending: list[jax.Array] = []  # the losses of the steps since the last fetch, on the device
+    last_val: dict[str, float] = {}
+    step, last = start, start >= cadence.steps
+    try:
+        while not last:
+            if step_hook is not None:
+                state = step_hook(step, state)
+            state, metrics = train_step(state, step)
+            step += 1
+            pending.append(metrics["loss"])
+            pbar.update(1)
+            last = step >= cadence.steps or time.perf_counter() >= deadline
+            log = step % cadence.log_every == 0 or last
+            val = step % cadence.val_every == 0 or last
+            save = step % cadence.ckpt_every == 0 or last
+            if not (log or val or save):
+                continue
+            _check_finite(jax.device_get(pending), step, checkpointer)
+            pending = []
+            if log:
+                now = time.perf_counter()
+                logged = {f"train/{k}": float(v) for k, v in jax.device_get(metrics).items()}
+                logged["train/steps_per_s"] = (step - step_last) / max(now - t_last, 1e-9)
+                t_last, step_last = now, step
+                writer.write_scalars(step, logged)
+                pbar.set_postfix(
+                    loss=f"{logged['train/loss']:.4g}", steps_s=f"{logged['train/steps_per_s']:.2f}"
+                )
+            val_metrics = None
+            if val:
+                val_metrics = last_val = validate(step, state)
+                writer.write_scalars(step, val_metrics)
+                pbar.write(
+                    f"step {step}: "
+                    + " ".join(f"{k[4:]}={v:.4g}" for k, v in sorted(val_metrics.items()))
+                )
+            if save and step not in checkpointer.all_steps():
+                best = val_metrics if checkpointer.best_metric is not None else None
+                checkpointer.save(step, state, metrics=best, data_iter=data_iter)
+    finally:
+        pbar.close()
+    return step, state, last_val
+
+
+def _check_finite(losses: list[Any], step: int, checkpointer: Checkpointer) -> None:
+    """Raises NonFiniteLossError naming the first non-finite loss of the steps ending at `step`."""
+    for offset, loss in enumerate(losses):
+        if not math.isfinite(float(loss)):
+            bad = step - len(losses) + 1 + offset
+            raise NonFiniteLossError(
+                f"loss became {float(loss)} at step {bad}; training stopped. The last good "
+                f"checkpoint (step {checkpointer.latest_step()}) in {checkpointer.directory} is "
+                "kept; lower learning_rate or clip_norm and resume or restart"
+            )

@@ -1,13 +1,11 @@
 """Phase 2: train the dynamics module (VRNN) on the keypoint trajectories of a phase-1 run.
 
-`nmjax train-dyn [--data NAME] [--skel-run DIR] [--model nm|vrnn] [--preset default|cpu|tiny]
-[--steps N] [--run DIR] [--resume]`.
-
-Inputs (contract C10) come from a phase-1 run folder: `skeleton.json` (parents, root, order) and
-`keypoints_{train,test}.npz` (one (T_seq,K,4) trajectory per sequence, written by the frozen
-detector). Training crops of T frames are drawn inside the compiled step from all valid start
-frames with the key fold_in(seed key, step), so a resumed run sees exactly the batches of an
-uninterrupted one without saving a data-iterator state.
+Inputs (contract C10, read by `nmjax.runs`) come from a phase-1 run folder: `skeleton.json`
+(parents, root, order) and `keypoints_{train,test}.npz` (one (T_seq,K,4) trajectory per sequence,
+written by the frozen detector). Training crops of T frames are drawn inside the compiled step
+from all valid start frames with the key fold_in(seed key, step), so a resumed run sees exactly
+the batches of an uninterrupted one without saving a data-iterator state. The step and the loop
+are those of phase 1 (`common.train_loop`); only `loss_fn` and the data differ.
 
 Loss: Eq. 3 (`losses.vrnn_reconstruction`) + kl_weight * Eq. 4 (`losses.kl_diag_gaussians`
 summed over the latent, averaged over batch and time).
@@ -15,11 +13,8 @@ summed over the latent, averaged over batch and time).
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import functools
-import json
-import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -32,113 +27,12 @@ import optax
 from flax import nnx
 
 from nmjax import io, losses
-from nmjax.config import PRESETS, DynTrainConfig, add_override_argument, apply_overrides, dyn_preset
-from nmjax.models.dynamics import MODELS, Dynamics
+from nmjax.config import DynTrainConfig
+from nmjax.models.dynamics import Dynamics
 from nmjax.train import common, parallel
 
 RUNS_ROOT = Path("runs")
 MAX_VAL_CROPS = 64
-
-
-# --- phase-1 inputs -------------------------------------------------------------------------
-
-
-def find_skel_run(
-    data: str, skel_run: str | Path | None = None, runs_root: Path = RUNS_ROOT
-) -> Path:
-    """The phase-1 run to train on: `skel_run`, or the latest `runs_root/skel-<data>-*` folder.
-
-    Raises:
-      FileNotFoundError: no such run, naming the command that creates it.
-    """
-    if skel_run is not None:
-        path = Path(skel_run)
-        if not path.is_dir():
-            raise FileNotFoundError(
-                f"--skel-run {path} does not exist; train phase 1 first with "
-                f"`make train-skel DATA={data}` or pass an existing phase-1 run folder"
-            )
-        return path
-    candidates = sorted(p for p in Path(runs_root).glob(f"skel-{data}-*") if p.is_dir())
-    if not candidates:
-        raise FileNotFoundError(
-            f"no phase-1 run of {data!r} under {runs_root}/ (expected {runs_root}/skel-{data}-*); "
-            f"run `make train-skel DATA={data}` first, or pass --skel-run DIR"
-        )
-    return candidates[-1]
-
-
-def read_skeleton(run: Path) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """(parents, order) from `<run>/skeleton.json` (contract C10).
-
-    Raises:
-      FileNotFoundError: the skeleton has not been extracted yet (names the command).
-      ValueError: the file lacks `parents` / `order` or they do not describe a rooted tree.
-    """
-    path = Path(run) / "skeleton.json"
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; extract the skeleton first with "
-            f"`nmjax extract-skeleton --run {run}`"
-        )
-    try:
-        meta = json.loads(path.read_text())
-        parents = tuple(int(p) for p in meta["parents"])
-        order = tuple(int(k) for k in meta["order"])
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as err:
-        raise ValueError(
-            f"{path} must be JSON with integer lists 'parents' and 'order' ({err}); "
-            f"re-run `nmjax extract-skeleton --run {run}`"
-        ) from err
-    k = len(parents)
-    position = {joint: i for i, joint in enumerate(order)}
-    valid = (
-        sorted(order) == list(range(k))
-        and parents[order[0]] == order[0]
-        and all(0 <= parents[j] < k and position[parents[j]] < position[j] for j in order[1:])
-    )
-    if not valid:
-        raise ValueError(
-            f"{path}: parents {parents} with order {order} is not a tree listed root first; "
-            f"re-run `nmjax extract-skeleton --run {run}`"
-        )
-    return parents, order
-
-
-def load_trajectories(run: Path, split: str) -> dict[str, np.ndarray]:
-    """Keypoint trajectories {sequence: (T_seq, K, 4) float32} from `<run>/keypoints_<split>.npz`.
-
-    When the cache is missing, the frozen detector of the run writes it first
-    (`nmjax.train.skel.export_keypoints`).
-    """
-    path = Path(run) / f"keypoints_{split}.npz"
-    if not path.is_file():
-        try:
-            from nmjax.train.skel import export_keypoints
-        except ImportError as err:
-            raise FileNotFoundError(
-                f"{path} not found and the phase-1 exporter cannot be imported ({err}); write it "
-                f"with `nmjax.train.skel.export_keypoints('{run}', '{split}')`"
-            ) from err
-        print(f"[train-dyn] {path.name} missing: running the frozen detector of {run}")
-        export_keypoints(run, split)
-    return read_trajectories(path)
-
-
-def read_trajectories(path: Path) -> dict[str, np.ndarray]:
-    """{sequence: (T_seq, K, 4) float32} of a keypoints .npz (the layout of keypoints_*.npz)."""
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; write it with `nmjax.train.skel.export_keypoints(...)`"
-        )
-    with np.load(path) as npz:
-        trajectories = {name: np.asarray(npz[name], np.float32) for name in npz.files}
-    if not trajectories:
-        raise ValueError(f"{path} holds no sequences; re-export the keypoints")
-    for name, x in trajectories.items():
-        if x.ndim != 3 or x.shape[-1] != 4:
-            raise ValueError(f"{path}[{name!r}] has shape {x.shape}; expected (T_seq, K, 4)")
-    return trajectories
 
 
 # --- crops ------------------------------------------------------------------------------------
@@ -155,9 +49,7 @@ def crop_table(trajectories: dict[str, np.ndarray], frames: int) -> tuple[np.nda
     """
     pieces, starts, offset = [], [], 0
     for name in sorted(trajectories):
-        x = trajectories[name]
-        if len(x) < frames:
-            x = np.concatenate([x, np.repeat(x[-1:], frames - len(x), axis=0)])
+        x = common.pad_with_last(trajectories[name], frames)
         pieces.append(x)
         starts.append(offset + np.arange(len(x) - frames + 1))
         offset += len(x)
@@ -196,27 +88,22 @@ def loss_fn(
     recon = losses.vrnn_reconstruction(x, out.keypoints)
     kl = jnp.mean(losses.kl_diag_gaussians(out.mean_q, out.std_q, out.mean_p, out.std_p))
     total = recon + kl_weight * kl
-    last_pose = jax.lax.stop_gradient(frame_error(x[:, 1:], x[:, :-1]))
+    last_pose = jax.lax.stop_gradient(losses.vrnn_reconstruction(x[:, 1:], x[:, :-1]))
     return total, {"loss": total, "recon": recon, "kl": kl, "last_pose": last_pose}
 
 
 @dataclasses.dataclass(frozen=True)
 class StepSettings:
-    """The hyperparameters a compiled step depends on (hashable: a static jit argument)."""
+    """What the compiled step depends on besides the graph (hashable: a static jit argument)."""
 
     batch_size: int
     frames: int
     kl_weight: float
-    learning_rate: float
-    clip_norm: float
+    optimizer: common.OptimizerSettings
 
     @classmethod
     def of(cls, cfg: DynTrainConfig) -> StepSettings:
-        return cls(cfg.batch_size, cfg.frames, cfg.kl_weight, cfg.learning_rate, cfg.clip_norm)
-
-    def optimizer(self) -> optax.GradientTransformation:
-        """Clipping then Adam (`common.make_optimizer`), no learning-rate milestones."""
-        return common.make_optimizer(self.learning_rate, (), (), self.clip_norm)
+        return cls(cfg.batch_size, cfg.frames, cfg.kl_weight, common.OptimizerSettings.of(cfg))
 
 
 @functools.partial(
@@ -249,11 +136,9 @@ def train_step(state, poses, starts, base_key, step, *, graphdef, settings: Step
     x = parallel.constrain_batch(x, mesh)
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (_, metrics), grads = grad_fn(model, x, key_model, settings.kl_weight)
-    params = nnx.state(model, nnx.Param)
-    updates, opt = settings.optimizer().update(grads, state["opt"], params)
-    nnx.update(model, optax.apply_updates(params, updates))
+    state = common.apply_gradients(model, grads, state["opt"], settings.optimizer)
     metrics["grad_norm"] = optax.tree.norm(grads)
-    return parallel.constrain_replicated(({"model": nnx.state(model), "opt": opt}, metrics), mesh)
+    return parallel.constrain_replicated((state, metrics), mesh)
 
 
 def make_train_step(
@@ -272,17 +157,10 @@ def build(
 ) -> tuple[nnx.GraphDef, dict[str, Any]]:
     """The model of `cfg` and its optimizer state: (graphdef, {"model": ..., "opt": ...})."""
     model = Dynamics(cfg.model, parents, order, rngs=nnx.Rngs(cfg.seed))
-    graphdef, model_state = nnx.split(model)
-    opt = StepSettings.of(cfg).optimizer().init(nnx.state(model, nnx.Param))
-    return graphdef, {"model": model_state, "opt": opt}
+    return common.init_state(model, StepSettings.of(cfg).optimizer)
 
 
 # --- validation -------------------------------------------------------------------------------
-
-
-def frame_error(x: jax.Array, x_hat: jax.Array) -> jax.Array:
-    """Eq. 3's per-frame error ||x_t - x_hat_t||^2, averaged over all leading axes."""
-    return jnp.mean(jnp.sum(jnp.square(x - x_hat), axis=(-2, -1)))
 
 
 def condition_frames(frames: int) -> int:
@@ -311,12 +189,13 @@ def evaluate(
     generated, _ = model.generate(x[:, :t_cond], x.shape[1] - t_cond, key_gen)
     future = x[:, t_cond:]
     hold = jnp.broadcast_to(x[:, t_cond - 1 : t_cond], future.shape)
+    error = losses.vrnn_reconstruction  # Eq. 3's per-frame error, as in training
     metrics = {
-        "recon": frame_error(x[:, 1:], recon[:, 1:]),
-        "recon_best": frame_error(x[:, 1:], recon_best[:, 1:]),
-        "last_pose": frame_error(x[:, 1:], x[:, :-1]),
-        "gen": frame_error(future, generated[:, t_cond:]),
-        "gen_hold": frame_error(future, hold),
+        "recon": error(x[:, 1:], recon[:, 1:]),
+        "recon_best": error(x[:, 1:], recon_best[:, 1:]),
+        "last_pose": error(x[:, 1:], x[:, :-1]),
+        "gen": error(future, generated[:, t_cond:]),
+        "gen_hold": error(future, hold),
     }
     return metrics, generated
 
@@ -381,28 +260,47 @@ def default_run_dir(cfg: DynTrainConfig) -> Path:
     return RUNS_ROOT / f"dyn-{cfg.data}-{cfg.model.model}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
+def check_config(cfg: DynTrainConfig) -> None:
+    """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
+    common.check_positive(cfg, ("steps", "batch_size", "frames", "log_every", "val_every"))
+    common.check_positive(cfg, ("ckpt_every",))
+
+
 def train(
-    cfg: DynTrainConfig, *, resume: bool = False, progress: bool = True
+    cfg: DynTrainConfig,
+    skeleton: tuple[tuple[int, ...], tuple[int, ...]],
+    trajectories: dict[str, dict[str, np.ndarray]],
+    *,
+    resume: bool = False,
+    progress: bool = True,
+    step_hook: Callable[[int, Any], Any] | None = None,
 ) -> tuple[Path, list[dict[str, float]]]:
     """Trains `cfg` to `cfg.steps` steps; returns the run folder and the validation records.
 
-    The resolved phase-1 folder is stored in the run's config.json (`skel_run`), so later tasks
-    rebuild the model from the run folder alone.
-    """
-    from tqdm import tqdm
+    Args:
+      cfg: the configuration; `cfg.skel_run` names the phase-1 run the inputs come from (stored
+        in config.json, so later tasks rebuild the model from the run folder alone).
+      skeleton: (parents, order) of the phase-1 run (`nmjax.runs.read_skeleton`).
+      trajectories: {"train": ..., "test": ...} keypoint trajectories {sequence: (T_seq, K, 4)}
+        (`nmjax.runs.load_trajectories`).
+      resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
+        `cfg` only in `common.RESUMABLE_FIELDS`.
+      progress: show a tqdm bar.
+      step_hook: test hook `(step, state) -> state` applied before each step.
 
-    skel_dir = find_skel_run(cfg.data, cfg.skel_run)
-    parents, order = read_skeleton(skel_dir)
-    train_traj = load_trajectories(skel_dir, "train")
-    test_traj = load_trajectories(skel_dir, "test")
-    for split, traj in (("train", train_traj), ("test", test_traj)):
+    Raises:
+      NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
+    """
+    check_config(cfg)
+    parents, order = skeleton
+    for split, traj in trajectories.items():
         k = {x.shape[1] for x in traj.values()}
         if k != {len(parents)}:
             raise ValueError(
-                f"{skel_dir}/keypoints_{split}.npz has K={sorted(k)} keypoints but skeleton.json "
-                f"has {len(parents)} joints; re-export the keypoints of {skel_dir}"
+                f"{cfg.skel_run}/keypoints_{split}.npz has K={sorted(k)} keypoints but "
+                f"skeleton.json has {len(parents)} joints; re-export the keypoints with "
+                f"`nmjax export-keypoints --run {cfg.skel_run}`"
             )
-    cfg = dataclasses.replace(cfg, skel_run=str(skel_dir))
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
@@ -411,8 +309,8 @@ def train(
     # Every host holds the whole crop table and validation set: replicated global arrays.
     poses, starts, val_x, base_key, val_key = parallel.replicate(
         (
-            *crop_table(train_traj, cfg.frames),
-            validation_crops(test_traj, cfg.frames),
+            *crop_table(trajectories["train"], cfg.frames),
+            validation_crops(trajectories["test"], cfg.frames),
             jax.random.key(cfg.seed),
             jax.random.key(cfg.seed + 1),
         ),
@@ -421,134 +319,46 @@ def train(
     graphdef, state = build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
-
-    checkpointer = common.Checkpointer(run_dir / "checkpoints", keep=cfg.keep_checkpoints)
-    step = 0
-    if resume and checkpointer.latest_step() is not None:
-        step, state = checkpointer.restore(state)
-    writer = parallel.metric_writer(run_dir, resume_step=step if resume else None)
     history: list[dict[str, float]] = []
 
-    def validate(step: int) -> None:
+    def train_step(state: Any, step: int) -> tuple[Any, dict[str, jax.Array]]:
+        return step_fn(state, poses, starts, base_key, np.int32(step))
+
+    def validate(step: int, state: Any) -> dict[str, float]:
         metrics, generated = eval_step(state, val_x, val_key, graphdef=graphdef)
         scalars = {f"val/{k}": float(v) for k, v in metrics.items()}
-        writer.write_scalars(step, scalars)
         history.append({"step": step, **scalars})
-        if not parallel.is_primary():
-            return
-        plot_motion(
-            run_dir / "figures" / f"motion_{step:07d}.png",
-            np.asarray(val_x[0]),
-            np.asarray(generated),
-            parents,
-            condition_frames(cfg.frames),
-        )
-        pbar.write(
-            f"step {step}: val recon {scalars['val/recon']:.4g} (best of S "
-            f"{scalars['val/recon_best']:.4g}; last pose "
-            f"{scalars['val/last_pose']:.4g}), gen {scalars['val/gen']:.4g} (hold "
-            f"{scalars['val/gen_hold']:.4g})"
-        )
+        if parallel.is_primary():
+            plot_motion(
+                run_dir / "figures" / f"motion_{step:07d}.png",
+                np.asarray(val_x[0]),
+                np.asarray(generated),
+                parents,
+                condition_frames(cfg.frames),
+            )
+        return scalars
 
-    pbar = tqdm(total=cfg.steps, initial=step, disable=not progress, desc="train-dyn")
-    tic, tic_step = time.perf_counter(), step
+    checkpointer = common.Checkpointer(run_dir / common.CHECKPOINTS, keep=cfg.keep_checkpoints)
     try:
-        while step < cfg.steps:
-            state, metrics = step_fn(state, poses, starts, base_key, np.int32(step))
-            step += 1
-            pbar.update(1)
-            if step % cfg.log_every == 0 or step == cfg.steps:
-                scalars = {f"train/{k}": float(v) for k, v in metrics.items()}
-                toc = time.perf_counter()
-                scalars["train/steps_per_s"] = (step - tic_step) / max(toc - tic, 1e-9)
-                tic, tic_step = toc, step
-                writer.write_scalars(step, scalars)
-                pbar.set_postfix(loss=f"{scalars['train/loss']:.4g}")
-            if step % cfg.val_every == 0 or step == cfg.steps:
-                validate(step)
-            if step % cfg.ckpt_every == 0 or step == cfg.steps:
-                if step not in checkpointer.all_steps():
-                    checkpointer.save(step, state)
-    finally:
-        pbar.close()
-        checkpointer.close()
-        writer.close()
-    return run_dir, history
-
-
-def restore_model(run_dir: str | Path, step: int | None = None) -> Dynamics:
-    """The trained dynamics model of a phase-2 run folder (latest checkpoint by default)."""
-    run_dir = Path(run_dir)
-    cfg = common.load_config(run_dir, DynTrainConfig)
-    parents, order = read_skeleton(Path(cfg.skel_run))
-    graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
-    with common.Checkpointer(run_dir / "checkpoints", keep=cfg.keep_checkpoints) as ckpt:
-        _, state = ckpt.restore(abstract, step=step)
-    return nnx.merge(graphdef, state["model"])
-
-
-# --- command ----------------------------------------------------------------------------------
-
-
-def parse_args(argv: list[str]) -> tuple[DynTrainConfig, bool]:
-    parser = argparse.ArgumentParser(
-        prog="nmjax train-dyn", description="Phase 2: train the VRNN dynamics on a phase-1 run."
-    )
-    parser.add_argument("--data", default="synth-hand", help="dataset name (default synth-hand)")
-    parser.add_argument("--skel-run", default=None, help="phase-1 run (default: latest of DATA)")
-    parser.add_argument("--model", default="nm", choices=MODELS, help="nm (FK) or vrnn baseline")
-    parser.add_argument("--preset", default="default", choices=PRESETS)
-    parser.add_argument("--steps", type=int, default=None, help="override the preset's steps")
-    parser.add_argument("--run", default=None, help="run folder (default runs/dyn-<data>-...)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --run")
-    parser.add_argument("--seed", type=int, default=None)
-    parser.add_argument(
-        "--batch-size", type=int, default=None, help="global batch (a multiple of the devices)"
-    )
-    add_override_argument(
-        parser, "override any config field, e.g. --set kl_weight=1e-4 --set model.hidden=256"
-    )
-    parallel.add_distributed_args(parser)
-    args = parser.parse_args(argv)
-    if args.resume and args.run is None:
-        parser.error("--resume needs --run DIR (the run folder to continue)")
-    cfg = dyn_preset(args.data, args.preset)
-    cfg = dataclasses.replace(
-        cfg,
-        skel_run=args.skel_run,
-        model=dataclasses.replace(cfg.model, model=args.model),
-        run=args.run,
-    )
-    if args.steps is not None:
-        if args.steps < 1:
-            parser.error(f"--steps must be >= 1, got {args.steps}")
-        cfg = dataclasses.replace(cfg, steps=args.steps)
-    if args.seed is not None:
-        cfg = dataclasses.replace(cfg, seed=args.seed)
-    if args.batch_size is not None:
-        if args.batch_size < 1:
-            parser.error(f"--batch-size must be >= 1, got {args.batch_size}")
-        cfg = dataclasses.replace(cfg, batch_size=args.batch_size)
-    try:
-        cfg = apply_overrides(cfg, args.overrides)
-    except ValueError as err:
-        parser.error(str(err))
-    return cfg, args.resume
-
-
-def main(argv: list[str]) -> int:
-    cfg, resume = parse_args(argv)
-    try:
-        parallel.initialize_from_argv(argv)
+        step = 0
         if resume:
-            # The run's own configuration decides the model; --steps may extend it.
-            saved = common.load_config(cfg.run, DynTrainConfig)
-            steps = cfg.steps if "--steps" in argv else saved.steps
-            cfg = dataclasses.replace(saved, steps=steps)
-        run_dir, history = train(cfg, resume=resume)
-    except (FileNotFoundError, ValueError) as err:
-        print(f"nmjax train-dyn: {err}", file=sys.stderr)
-        return 1
-    last = history[-1] if history else {}
-    print(f"run folder: {run_dir}; final validation: {json.dumps(last)}")
-    return 0
+            step, state = checkpointer.restore(common.abstract_state(state))
+        writer = parallel.metric_writer(run_dir, resume_step=step if resume else None)
+        try:
+            common.train_loop(
+                state,
+                step,
+                cadence=common.Cadence.of(cfg),
+                train_step=train_step,
+                validate=validate,
+                checkpointer=checkpointer,
+                writer=writer,
+                progress=progress,
+                desc="train-dyn",
+                step_hook=step_hook,
+            )
+        finally:
+            writer.close()
+    finally:
+        checkpointer.close()
+    return run_dir, history

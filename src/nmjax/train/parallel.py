@@ -6,16 +6,16 @@ state are replicated (`P()`), so XLA inserts the gradient all-reduce. One device
 path with a mesh of one device.
 
 Several hosts join with `jax.distributed.initialize`, driven by the `--coordinator-address`,
-`--num-processes`, `--process-id` flags of `nmjax train-skel` / `nmjax train-dyn` or, when the flags
-are absent, by the environment variables JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES,
-JAX_PROCESS_ID. Each host then feeds its own slice of the global batch
-(`host_batch_to_global`); arrays every host holds in full (validation batches, the phase-2 crop
-table, the initial state) are placed with `global_array` / `replicate`.
+`--num-processes`, `--process-id` flags of `nmjax train-skel` / `nmjax train-dyn`
+(`nmjax.cli.train`) or, when the flags are absent, by the environment variables
+JAX_COORDINATOR_ADDRESS, JAX_NUM_PROCESSES, JAX_PROCESS_ID. Each host then feeds its own slice
+of the global batch (`host_batch_to_global`); arrays every host holds in full (validation
+batches, the phase-2 crop table, the initial state) are placed with `global_array` /
+`replicate`.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -33,18 +33,6 @@ ENV_PROCESS_ID = "JAX_PROCESS_ID"
 
 
 # --- several hosts ---------------------------------------------------------------------------
-
-
-def add_distributed_args(parser: argparse.ArgumentParser) -> None:
-    """Adds --coordinator-address, --num-processes and --process-id to a trainer's parser."""
-    group = parser.add_argument_group(
-        "several hosts", f"default: ${ENV_COORDINATOR}, ${ENV_NUM_PROCESSES}, ${ENV_PROCESS_ID}"
-    )
-    group.add_argument(
-        "--coordinator-address", default=None, help="HOST:PORT of process 0 (multi-host runs)"
-    )
-    group.add_argument("--num-processes", type=int, default=None, help="number of hosts")
-    group.add_argument("--process-id", type=int, default=None, help="this host, 0..N-1")
 
 
 def distributed_settings(
@@ -105,14 +93,6 @@ def initialize_distributed(
     address, count, index = settings
     jax.distributed.initialize(address, num_processes=count, process_id=index)
     return True
-
-
-def initialize_from_argv(argv: Sequence[str]) -> bool:
-    """`initialize_distributed` from the distributed flags in a trainer's argument list."""
-    parser = argparse.ArgumentParser(add_help=False)
-    add_distributed_args(parser)
-    args, _ = parser.parse_known_args(list(argv))
-    return initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
 
 
 def is_primary() -> bool:

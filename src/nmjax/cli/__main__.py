@@ -1,0 +1,7 @@
+"""`python -m nmjax.cli COMMAND ...`, the same as `nmjax COMMAND ...`."""
+
+import sys
+
+from nmjax.cli import main
+
+sys.exit(main())

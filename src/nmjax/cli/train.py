@@ -1,0 +1,173 @@
+"""`nmjax train-skel` and `nmjax train-dyn`: the two training phases.
+
+    nmjax train-skel --data synth-arm --preset cpu [--steps N] [--run DIR] [--resume]
+                     [--overwrite] [--set model.channels=16 --set weights.vol=1.0 ...]
+    nmjax train-dyn [--data NAME] [--skel-run DIR] [--model nm|vrnn] [--preset default|cpu|tiny]
+                    [--steps N] [--run DIR] [--resume] [--seed S] [--batch-size B] [--set ...]
+
+A new run starts from the preset plus the options. `--resume` continues `--run` from its own
+config.json: `--steps` (and the log / validation / checkpoint cadence via --set) may change;
+any other option that changes the saved configuration (`--set model...`, `--seed`,
+`--batch-size`, another --data) is refused before anything in the folder is written.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+from pathlib import Path
+
+from nmjax.cli import Parser, parser, positive
+
+
+def _distributed_args(p: argparse.ArgumentParser) -> None:
+    from nmjax.train.parallel import ENV_COORDINATOR, ENV_NUM_PROCESSES, ENV_PROCESS_ID
+
+    group = p.add_argument_group(
+        "several hosts", f"default: ${ENV_COORDINATOR}, ${ENV_NUM_PROCESSES}, ${ENV_PROCESS_ID}"
+    )
+    group.add_argument(
+        "--coordinator-address", default=None, help="HOST:PORT of process 0 (multi-host runs)"
+    )
+    group.add_argument("--num-processes", type=int, default=None, help="number of hosts")
+    group.add_argument("--process-id", type=int, default=None, help="this host, 0..N-1")
+
+
+def _common_args(p: Parser, what: str) -> None:
+    from nmjax.config import PRESETS, add_override_argument
+
+    p.add_argument("--preset", default="default", choices=PRESETS, help="ignored with --resume")
+    p.add_argument("--steps", type=int, default=None, help="total optimizer steps")
+    p.add_argument("--run", default=None, help=f"run folder (default runs/{what}-DATA-STAMP)")
+    p.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
+    add_override_argument(p, "override a config field, e.g. --set model.channels=16")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _distributed_args(p)
+
+
+def _saved_config(args: argparse.Namespace, cls: type):
+    """The run's own config for --resume (which needs --run)."""
+    from nmjax.train import common
+
+    if args.run is None:
+        raise ValueError("--resume needs --run DIR (the run folder to continue)")
+    return common.load_config(args.run, cls)
+
+
+def _initialize(args: argparse.Namespace) -> None:
+    from nmjax.train import parallel
+
+    parallel.initialize_distributed(args.coordinator_address, args.num_processes, args.process_id)
+
+
+# --- phase 1 ----------------------------------------------------------------------------------
+
+
+def skel_config(args: argparse.Namespace):
+    """The preset (or, with --resume, the run's saved config) plus the command-line options."""
+    from nmjax.config import SkelTrainConfig, apply_overrides, skel_preset
+    from nmjax.train import skel
+
+    if args.resume:
+        cfg = _saved_config(args, SkelTrainConfig)
+        if args.data is not None and args.data != cfg.data.name:
+            raise ValueError(
+                f"--resume continues {args.run}, a run of {cfg.data.name!r}; drop --data "
+                f"{args.data} or start a new run"
+            )
+    else:
+        cfg = skel_preset(args.data or "synth-hand", args.preset)
+    if args.root is not None:
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
+    cfg = apply_overrides(cfg, args.overrides)
+    if args.steps is not None:
+        cfg = dataclasses.replace(cfg, steps=args.steps)
+    if args.run is not None:
+        cfg = dataclasses.replace(cfg, run=str(args.run))
+    skel.check_config(cfg)
+    return cfg
+
+
+def skel_parser() -> Parser:
+    from nmjax.config import DATASETS
+
+    p = parser("train-skel", "Phase 1: train the keypoint detector and affinity (paper Eq. 23).")
+    p.add_argument("--data", default=None, help=f"one of {', '.join(DATASETS)} (synth-hand)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --run")
+    p.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
+    _common_args(p, "skel")
+    return p
+
+
+def train_skel(argv: list[str]) -> int:
+    p = skel_parser()
+    args = p.parse_args(argv)
+    positive(p, args, "steps")
+    _initialize(args)
+    from nmjax import runs
+    from nmjax.train import skel
+
+    cfg = skel_config(args)
+    run = Path(cfg.run) if cfg.run else skel.default_run_dir(cfg.data.name)
+    summary = skel.train(
+        cfg, run, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
+    )
+    runs.finish_phase1(run)
+    print(json.dumps(summary, indent=1, default=float))
+    return 0
+
+
+# --- phase 2 ----------------------------------------------------------------------------------
+
+
+def dyn_config(args: argparse.Namespace):
+    """The preset (or, with --resume, the run's saved config) plus the command-line options."""
+    from nmjax.config import DynTrainConfig, apply_overrides, dyn_preset
+
+    if args.resume:
+        cfg = _saved_config(args, DynTrainConfig)
+    else:
+        cfg = dyn_preset(args.data or "synth-hand", args.preset)
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model="nm"))
+    # Every option given is applied; on a resume the trainer refuses what changes the run.
+    if args.data is not None:
+        cfg = dataclasses.replace(cfg, data=args.data)
+    if args.model is not None:
+        cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=args.model))
+    if args.skel_run is not None:
+        cfg = dataclasses.replace(cfg, skel_run=args.skel_run)
+    for name in ("steps", "seed", "batch_size", "run"):
+        if getattr(args, name) is not None:
+            cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
+    return apply_overrides(cfg, args.overrides)
+
+
+def dyn_parser() -> Parser:
+    from nmjax.models.dynamics import MODELS
+
+    p = parser("train-dyn", "Phase 2: train the VRNN dynamics on a phase-1 run.")
+    p.add_argument("--data", default=None, help="dataset name (default synth-hand)")
+    p.add_argument("--skel-run", default=None, help="phase-1 run (default: latest of DATA)")
+    p.add_argument("--model", default=None, choices=MODELS, help="nm (FK, default) or vrnn")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument(
+        "--batch-size", type=int, default=None, help="global batch (a multiple of the devices)"
+    )
+    _common_args(p, "dyn")
+    return p
+
+
+def train_dyn(argv: list[str]) -> int:
+    p = dyn_parser()
+    args = p.parse_args(argv)
+    positive(p, args, "steps", "batch_size")
+    _initialize(args)
+    from nmjax import runs
+
+    run_dir, history = runs.train_dynamics(
+        dyn_config(args), resume=args.resume, progress=not args.no_progress
+    )
+    last = history[-1] if history else {}
+    print(f"run folder: {run_dir}; final validation: {json.dumps(last)}")
+    return 0

@@ -1,1 +1,0 @@
-"""One module per task subcommand of `nmjax` (the dispatcher calls `<module>.main(argv)`)."""

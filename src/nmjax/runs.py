@@ -1,0 +1,524 @@
+"""The run folder contract (C10) in one place: what a phase-1 and a phase-2 run folder hold, the
+readers of each file, and phase-1 inference over whole sequences.
+
+A phase-1 run (`nmjax train-skel`) holds config.json, checkpoints/, metrics.jsonl, affinity.npy
+and keypoint_stats.npz (written by the trainer), skeleton.json (`extract_run_skeleton`) and
+keypoints_{train,test}.npz (`export_keypoints`; one (S, K, 4) array per sequence). A phase-2 run
+(`nmjax train-dyn`) holds config.json, whose `skel_run` names the phase-1 run it was trained on,
+checkpoints/ and metrics.jsonl.
+
+Nothing here runs a model or writes a file as a side effect of reading: a missing export is an
+error naming the command that makes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import nnx
+
+from nmjax import io
+from nmjax.config import DynTrainConfig, SkelTrainConfig
+from nmjax.models.detector import KeypointDetector
+from nmjax.models.dynamics import Dynamics
+from nmjax.skeleton import (
+    DEFAULT_NEIGHBORS,
+    PRUNE_THRESHOLD,
+    Skeleton,
+    extract_skeleton,
+    load_skeleton,
+    prune,
+)
+from nmjax.train import common, dyn, parallel, skel
+
+RUNS_ROOT = Path("runs")
+SKELETON_FILE = "skeleton.json"
+AFFINITY_FILE = "affinity.npy"
+STATS_FILE = "keypoint_stats.npz"
+STATS_KEYS = ("intensities", "rest_positions", "example_voxels", "example_keypoints")
+SPLITS = ("train", "test")
+
+
+def keypoints_file(run: str | Path, split: str) -> Path:
+    """`<run>/keypoints_<split>.npz`: the frozen detector's keypoints of every sequence."""
+    return Path(run) / f"keypoints_{split}.npz"
+
+
+def run_kind(run: str | Path) -> str:
+    """ "dyn" for a phase-2 run folder (its config names a `skel_run`), "skel" for phase 1."""
+    path = Path(run) / common.CONFIG_FILE
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found; --run must be a run folder of `nmjax train-skel` or "
+            "`nmjax train-dyn`"
+        )
+    try:
+        config = json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path} is not valid JSON ({err}); the run folder is damaged") from err
+    return "dyn" if "skel_run" in config else "skel"
+
+
+# --- phase 1: the detector --------------------------------------------------------------------
+
+
+def load_detector(run: str | Path, step: int | None = None) -> tuple[KeypointDetector, Any]:
+    """The trained detector of a phase-1 run: (model, cfg).
+
+    Restores `step`, else the best checkpoint by validation loss, else the latest.
+    """
+    run = Path(run)
+    cfg = common.load_config(run, SkelTrainConfig)
+    # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
+    graphdef, state = skel.build(cfg)
+    abstract = common.abstract_state(state)
+    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, skel.BEST_METRIC)
+    try:
+        if step is None:
+            step = ckpt.best_step() or ckpt.latest_step()
+        _, state = ckpt.restore(abstract, step=step)
+    finally:
+        ckpt.close()
+    return skel.model_of(graphdef, state), cfg
+
+
+@dataclasses.dataclass
+class Detector:
+    """A restored phase-1 detector with compiled detect / reconstruct / decode functions.
+
+    The functions are module-level jits keyed by the (static) graphdef, so every Detector of one
+    configuration shares their compilations.
+    """
+
+    run: Path
+    cfg: SkelTrainConfig
+    graphdef: Any
+    state: Any
+
+    @classmethod
+    def load(cls, run: str | Path, step: int | None = None) -> Detector:
+        """The detector of checkpoint `step` (default: the best, see `load_detector`)."""
+        model, cfg = load_detector(run, step)
+        return cls.of(model, cfg, run)
+
+    @classmethod
+    def of(cls, model: KeypointDetector, cfg: SkelTrainConfig, run: str | Path) -> Detector:
+        graphdef, state = nnx.split(model)
+        # A trained state may be replicated over several hosts; inference here is local.
+        return cls(Path(run), cfg, graphdef, parallel.to_local(state))
+
+    def _batches(self, voxels: np.ndarray, fn) -> list[Any]:
+        """`fn(graphdef, state, batch)` on `voxels` in batches of the training batch size, the
+        last padded with the last crop, so one compiled shape serves every call."""
+        b = self.cfg.data.batch_size
+        padded = common.pad_with_last(voxels, -(-len(voxels) // b) * b)
+        return [
+            jax.device_get(fn(self.graphdef, self.state, jnp.asarray(padded[i : i + b])))
+            for i in range(0, len(padded), b)
+        ]
+
+    def run_batches(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints (C, T, K, 4) and reconstructions (C, T, G, G, G) of crops (C, T, G, G, G)."""
+        outs = self._batches(voxels, _forward)
+        n = len(voxels)
+        return (
+            np.concatenate([kp for kp, _ in outs])[:n],
+            np.concatenate([recon for _, recon in outs])[:n],
+        )
+
+    def keypoints(self, voxels: np.ndarray) -> np.ndarray:
+        """Keypoints (C, T, K, 4) of crops (C, T, G, G, G), without the reconstruction."""
+        return np.concatenate(self._batches(voxels, _detect))[: len(voxels)]
+
+    def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
+        """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
+        return np.asarray(
+            _decode(self.graphdef, self.state, jnp.asarray(keypoints), jnp.asarray(first_voxels))
+        )
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def _forward(graphdef, state, voxels):
+    out = nnx.merge(graphdef, state)(voxels)
+    return out["keypoints"], out["recon"]
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def _detect(graphdef, state, voxels):
+    return nnx.merge(graphdef, state).detect(voxels)[1]
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def _decode(graphdef, state, keypoints, first_voxels):
+    model = nnx.merge(graphdef, state)
+    features = model.features(first_voxels)  # c_1 of frame ts: f_feat sees one frame
+    return model.decode(keypoints, features, first_voxels)
+
+
+def sequence_voxels(seq, sample_rate: int, grid: int) -> np.ndarray:
+    """(S, G, G, G): every `sample_rate`-th frame, one bounding box over the whole sequence."""
+    from nmjax.data.voxelize import normalize_sequence, voxelize
+
+    points, _ = normalize_sequence(np.asarray(seq.vertices[::sample_rate], np.float32))
+    return voxelize(points, grid)
+
+
+def sequence_windows(voxels: np.ndarray, frames: int) -> np.ndarray:
+    """(S, G, G, G) -> (ceil(S / T), T, G, G, G); the last window padded with the last frame."""
+    windows = -(-voxels.shape[0] // frames)
+    voxels = common.pad_with_last(voxels, windows * frames)
+    return voxels.reshape(windows, frames, *voxels.shape[1:])
+
+
+def export_keypoints(
+    run: str | Path,
+    split: str,
+    *,
+    detector: Detector | None = None,
+    data_root: str | Path | None = None,
+    path: str | Path | None = None,
+) -> Path:
+    """Writes `<run>/keypoints_<split>.npz`: one (S, K, 4) array per sequence of the split.
+
+    Each whole sequence (every `sample_rate`-th frame) is normalised with one bounding box
+    (DESIGN section 4), voxelised, cut into consecutive windows of T frames (the last padded by
+    repeating the last frame) and run through the detector in compiled batches of B windows.
+    `data_root` reads the sequences from another copy of the run's dataset (e.g. a set of
+    longer synthetic sequences), `path` writes the file elsewhere.
+    """
+    from nmjax.data.datasets import load_sequences
+
+    run = Path(run)
+    detector = Detector.load(run) if detector is None else detector
+    data = detector.cfg.data
+    arrays = {}
+    for seq in load_sequences(data.name, split, data.root if data_root is None else data_root):
+        voxels = sequence_voxels(seq, data.sample_rate, data.grid)
+        keypoints = detector.keypoints(sequence_windows(voxels, data.frames))
+        keypoints = keypoints.reshape(-1, *keypoints.shape[2:])  # windows joined in time
+        arrays[seq.name] = keypoints[: len(voxels)].astype(np.float32)
+    path = keypoints_file(run, split) if path is None else Path(path)
+    io.save_npz(path, **arrays)
+    return path
+
+
+def finish_phase1(run: str | Path, *, export: bool = True) -> None:
+    """The artefacts phase 2 needs after training: skeleton.json and (with `export`)
+    keypoints_{train,test}.npz of the run's final detector (its latest checkpoint).
+
+    Every host takes part in restoring the detector; only process 0 writes.
+    """
+    run = Path(run)
+    if parallel.is_primary():
+        try:
+            extract_run_skeleton(run)
+        except (ValueError, FileNotFoundError) as err:
+            # The skeleton stage is separate; the training results stay valid.
+            print(
+                f"train-skel: skeleton extraction failed ({err}); run "
+                f"`nmjax extract-skeleton --run {run}` once fixed",
+                file=sys.stderr,
+            )
+    if export:
+        detector = Detector.load(run, common.checkpoint_steps(run / common.CHECKPOINTS)[-1])
+        if parallel.is_primary():
+            for split in SPLITS:
+                export_keypoints(run, split, detector=detector)
+
+
+# --- phase 1: the skeleton --------------------------------------------------------------------
+
+
+def read_skeleton_inputs(run: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """(affinity (N, K, K), keypoint stats) of a phase-1 run, checked against each other.
+
+    Raises:
+      FileNotFoundError: a missing run folder or file (names the file and how it is made).
+      ValueError: missing keys or shapes that disagree.
+    """
+    if not run.is_dir():
+        raise FileNotFoundError(f"phase-1 run folder {run} does not exist (--run)")
+    affinity_path, stats_path = run / AFFINITY_FILE, run / STATS_FILE
+    for path in (affinity_path, stats_path):
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{path} not found; phase-1 training (`nmjax train-skel`) writes it at the end"
+            )
+    affinity = np.load(affinity_path)
+    if affinity.ndim == 2:
+        affinity = affinity[None]
+    if affinity.ndim != 3 or affinity.shape[1] != affinity.shape[2]:
+        raise ValueError(f"{affinity_path} must hold an (N, K, K) array, got {affinity.shape}")
+    num = affinity.shape[1]
+    with np.load(stats_path) as z:
+        missing = [k for k in STATS_KEYS if k not in z.files]
+        if missing:
+            raise ValueError(f"{stats_path} lacks {missing}; it needs {list(STATS_KEYS)}")
+        stats = {k: np.asarray(z[k]) for k in STATS_KEYS}
+    expected = {
+        "intensities": (num,),
+        "rest_positions": (num, 3),
+        "example_keypoints": (num, 4),
+    }
+    for key, shape in expected.items():
+        if stats[key].shape != shape:
+            raise ValueError(
+                f"{stats_path}: {key} has shape {stats[key].shape}, expected {shape} for the "
+                f"K={num} keypoints of {affinity_path}"
+            )
+    if stats["example_voxels"].ndim != 3:
+        raise ValueError(
+            f"{stats_path}: example_voxels must be (G, G, G), got {stats['example_voxels'].shape}"
+        )
+    return affinity, stats
+
+
+def extract_run_skeleton(
+    run: str | os.PathLike,
+    n_neighbors: int | None = None,
+    prune_threshold: float = PRUNE_THRESHOLD,
+    method: str = "algorithm1",
+) -> Skeleton:
+    """Extracts, saves and draws the skeleton of a phase-1 run (`nmjax extract-skeleton`).
+
+    Args:
+      run: phase-1 run folder with affinity.npy and keypoint_stats.npz.
+      n_neighbors: N of Algorithm 1; None uses `DEFAULT_NEIGHBORS` (2).
+      prune_threshold: keypoints with mean intensity below it are drawn faded and listed as
+        pruned (`pruned_parents`, `keep`); the tree itself spans all K keypoints.
+      method: "algorithm1" (the paper's, default) or "filtered" (`extract_skeleton`).
+
+    Returns:
+      The `Skeleton` written to `<run>/skeleton.json`.
+    """
+    from nmjax.skeleton_cli import draw_skeleton
+
+    run = Path(run)
+    n_neighbors = DEFAULT_NEIGHBORS if n_neighbors is None else n_neighbors
+    affinity, stats = read_skeleton_inputs(run)
+    skeleton = extract_skeleton(affinity, n_neighbors, stats["intensities"], method=method)
+    pruned, keep = prune(skeleton, stats["intensities"], prune_threshold)
+    skeleton.save(
+        run / SKELETON_FILE,
+        intensities=stats["intensities"].astype(np.float64),
+        rest_positions=stats["rest_positions"].astype(np.float64),
+        n_neighbors=int(n_neighbors),
+        method=method,
+        prune_threshold=float(prune_threshold),
+        pruned_parents=list(pruned.parents),
+        keep=keep.tolist(),
+    )
+    draw_skeleton(
+        run / "figures" / "skeleton.png",
+        skeleton,
+        stats["example_keypoints"],
+        stats["example_voxels"],
+        keep,
+        title=f"{run.name}: K={skeleton.num_keypoints}, kept {int(keep.sum())}",
+    )
+    return skeleton
+
+
+def read_skeleton(run: str | Path) -> Skeleton:
+    """The tree of a phase-1 run's `skeleton.json` (the one reader of that file).
+
+    Raises:
+      FileNotFoundError: the skeleton has not been extracted yet (names the command).
+      ValueError: the file is not JSON, lacks `parents` or they do not describe a rooted tree.
+    """
+    path = Path(run) / SKELETON_FILE
+    fix = f"re-run `nmjax extract-skeleton --run {run}`"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found; extract the skeleton first with `nmjax extract-skeleton --run "
+            f"{run}`"
+        )
+    try:
+        return load_skeleton(path)
+    except (json.JSONDecodeError, TypeError) as err:
+        raise ValueError(f"{path} is not a skeleton file ({err}); {fix}") from err
+    except ValueError as err:
+        raise ValueError(f"{err}; {fix}") from err
+
+
+def skeleton_intensities(run: str | Path) -> np.ndarray | None:
+    """The mean keypoint intensities stored beside the tree in skeleton.json, if any."""
+    values = json.loads((Path(run) / SKELETON_FILE).read_text()).get("intensities")
+    return None if values is None else np.asarray(values, np.float64)
+
+
+def pruned_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(parents of the pruned tree, kept-node mask) of a phase-1 run's `skeleton.json`, or None
+    when the run has none (`skeleton.prune` with the intensities stored beside the tree)."""
+    if not (Path(run) / SKELETON_FILE).is_file():
+        return None
+    skeleton = read_skeleton(run)
+    intensities = skeleton_intensities(run)
+    if intensities is None:
+        return np.asarray(skeleton.parents), np.ones(skeleton.num_keypoints, bool)
+    pruned, keep = prune(skeleton, intensities)
+    return np.asarray(pruned.parents), keep
+
+
+# --- phase 1 -> phase 2: keypoint trajectories ------------------------------------------------
+
+
+def find_skel_run(
+    data: str, skel_run: str | Path | None = None, runs_root: str | Path = RUNS_ROOT
+) -> Path:
+    """The phase-1 run to train on: `skel_run`, or the latest `runs_root/skel-<data>-*` folder.
+
+    Raises:
+      FileNotFoundError: no such run, naming the command that creates it.
+    """
+    if skel_run is not None:
+        path = Path(skel_run)
+        if not path.is_dir():
+            raise FileNotFoundError(
+                f"--skel-run {path} does not exist; train phase 1 first with "
+                f"`make train-skel DATA={data}` or pass an existing phase-1 run folder"
+            )
+        return path
+    candidates = sorted(p for p in Path(runs_root).glob(f"skel-{data}-*") if p.is_dir())
+    if not candidates:
+        raise FileNotFoundError(
+            f"no phase-1 run of {data!r} under {runs_root}/ (expected {runs_root}/skel-{data}-*); "
+            f"run `make train-skel DATA={data}` first, or pass --skel-run DIR"
+        )
+    return candidates[-1]
+
+
+def load_trajectories(run: str | Path, split: str) -> dict[str, np.ndarray]:
+    """Keypoint trajectories {sequence: (T_seq, K, 4) float32} of a phase-1 run's split.
+
+    Raises:
+      FileNotFoundError: keypoints_<split>.npz has not been exported (names the command).
+    """
+    path = keypoints_file(run, split)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{path} not found; export the phase-1 keypoints first with "
+            f"`nmjax export-keypoints --run {run}`"
+        )
+    return read_trajectories(path)
+
+
+def read_trajectories(path: str | Path) -> dict[str, np.ndarray]:
+    """{sequence: (T_seq, K, 4) float32} of a keypoints .npz (the layout of keypoints_*.npz).
+
+    Raises:
+      ValueError: no sequences, a wrong shape, or values that are not finite in float32.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} not found; export it with `nmjax export-keypoints`")
+    with np.load(path) as npz:
+        raw = {name: np.asarray(npz[name]) for name in npz.files}
+    if not raw:
+        raise ValueError(f"{path} holds no sequences; re-export the keypoints")
+    trajectories = {}
+    for name, x in raw.items():
+        if x.ndim != 3 or x.shape[-1] != 4:
+            raise ValueError(f"{path}[{name!r}] has shape {x.shape}; expected (T_seq, K, 4)")
+        with np.errstate(over="ignore", invalid="ignore"):
+            x32 = x.astype(np.float32)
+        if not np.isfinite(x32).all():
+            raise ValueError(
+                f"{path}[{name!r}] holds NaN, inf or values beyond the float32 range; re-export "
+                "the keypoints"
+            )
+        trajectories[name] = x32
+    return trajectories
+
+
+# --- phase 2 ----------------------------------------------------------------------------------
+
+
+def train_dynamics(
+    cfg: DynTrainConfig, *, resume: bool = False, progress: bool = True, **kwargs: Any
+) -> tuple[Path, list[dict[str, float]]]:
+    """Phase 2 on the phase-1 run `cfg.skel_run` (default: the latest of `cfg.data`): reads its
+    skeleton and exported keypoints, then `dyn.train`. The resolved phase-1 folder is stored in
+    the run's config.json."""
+    skel_run = find_skel_run(cfg.data, cfg.skel_run)
+    skeleton = read_skeleton(skel_run)
+    trajectories = {split: load_trajectories(skel_run, split) for split in SPLITS}
+    cfg = dataclasses.replace(cfg, skel_run=str(skel_run))
+    return dyn.train(
+        cfg,
+        (skeleton.parents, skeleton.order),
+        trajectories,
+        resume=resume,
+        progress=progress,
+        **kwargs,
+    )
+
+
+def restore_dynamics(run: str | Path, step: int | None = None) -> Dynamics:
+    """The trained dynamics model of a phase-2 run folder (latest checkpoint by default)."""
+    run = Path(run)
+    cfg = common.load_config(run, DynTrainConfig)
+    if not cfg.skel_run:
+        raise ValueError(f"{run}/config.json names no skel_run; is {run} a `train-dyn` run?")
+    skeleton = read_skeleton(cfg.skel_run)
+    graphdef, abstract = nnx.eval_shape(lambda: dyn.build(cfg, skeleton.parents, skeleton.order))
+    with common.Checkpointer(run / common.CHECKPOINTS, keep=cfg.keep_checkpoints) as ckpt:
+        _, state = ckpt.restore(abstract, step=step)
+    return nnx.merge(graphdef, state["model"])
+
+
+def load_phase2(run: str | Path) -> tuple[Dynamics, DynTrainConfig, Path]:
+    """(dynamics model, its config, the phase-1 run folder) of a phase-2 run."""
+    model = restore_dynamics(run)
+    cfg = common.load_config(run, DynTrainConfig)
+    return model, cfg, Path(cfg.skel_run)
+
+
+def find_vrnn_run(dyn_run: Path, skel_run: Path) -> Path | None:
+    """A positional-baseline phase-2 run beside `dyn_run` trained on the same phase-1 run."""
+    for candidate in sorted(Path(dyn_run).parent.glob("*"), reverse=True):
+        if candidate == Path(dyn_run) or not (candidate / common.CONFIG_FILE).is_file():
+            continue
+        try:
+            cfg = common.load_config(candidate, DynTrainConfig)
+        except (ValueError, FileNotFoundError, TypeError):
+            continue
+        same = cfg.skel_run and Path(cfg.skel_run).resolve() == Path(skel_run).resolve()
+        if cfg.model.model == "vrnn" and same and (candidate / common.CHECKPOINTS).is_dir():
+            return candidate
+    return None
+
+
+def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig, Path, Path | None]:
+    """(config of the "nm" run, its phase-1 run, the VRNN run given or found beside it).
+
+    Raises:
+      ValueError: `run` is not an "nm" run, or the VRNN run was trained on another phase-1 run.
+    """
+    dyn_cfg = common.load_config(run, DynTrainConfig)
+    if dyn_cfg.model.model != "nm":
+        raise ValueError(
+            f"{run} is a '{dyn_cfg.model.model}' run; give the Neural Marionette ('nm') run "
+            "as --run and the positional baseline as --vrnn-run"
+        )
+    skel_run = Path(dyn_cfg.skel_run)
+    if vrnn_run is None:
+        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run)
+    vrnn_run = Path(vrnn_run)
+    vrnn_skel = common.load_config(vrnn_run, DynTrainConfig).skel_run
+    if not vrnn_skel or Path(vrnn_skel).resolve() != skel_run.resolve():
+        raise ValueError(
+            f"--vrnn-run {vrnn_run} was trained on the phase-1 run {vrnn_skel}, {run} on "
+            f"{skel_run}; compare models of the same skeleton (train the baseline with "
+            f"`nmjax train-dyn --model vrnn --skel-run {skel_run}`)"
+        )
+    return dyn_cfg, skel_run, vrnn_run

@@ -539,51 +539,15 @@ def bench_torch(cfg: SkelTrainConfig, steps: int, warmup: int, seed: int = 0) ->
     }
 
 
-class _TimedExecutable:
-    """Wraps a compiled step: each call blocks until its outputs are ready and records its time.
-
-    `bench_skel` times from after the batch is placed to the outputs being ready; so does this
-    (its own `block_until_ready` then returns at once)."""
-
-    def __init__(self, compiled: Any, times: list[float]):
-        self._compiled, self._times = compiled, times
-
-    def __call__(self, *args: Any) -> Any:
-        import jax
-
-        tic = time.perf_counter()
-        out = jax.block_until_ready(self._compiled(*args))
-        self._times.append(time.perf_counter() - tic)
-        return out
-
-    def __getattr__(self, name: str) -> Any:  # memory_analysis() and the like
-        return getattr(self._compiled, name)
-
-
 def bench_jax(cfg: SkelTrainConfig, preset: str, steps: int, warmup: int) -> dict[str, Any]:
-    """`nmjax.bench.bench_skel`'s row, plus the per-step compute times of its timed steps."""
-    times: list[float] = []
-    original = getattr(bench, "_timed_compile", None)
-    if original is not None:
-
-        def timed_compile(jitted: Any, *args: Any, **kwargs: Any) -> tuple[Any, float]:
-            compiled, seconds = original(jitted, *args, **kwargs)
-            return _TimedExecutable(compiled, times), seconds
-
-        bench._timed_compile = timed_compile
-    try:
-        row = bench.bench_skel(cfg, preset, steps, warmup)
-    finally:
-        if original is not None:
-            bench._timed_compile = original
-    step_s = times[warmup:] if len(times) == warmup + steps else []
+    """`nmjax.bench.bench_skel`'s row (it times each step from the placed batch to the outputs
+    being ready) and the median and mean of its per-step compute times."""
+    row = bench.bench_skel(cfg, preset, steps, warmup)
     return {
         "row": row,
-        "step_s": step_s,
-        # without per-step times (nmjax.bench changed), the mean bench_skel reports
-        "median_s": statistics.median(step_s) if step_s else row["compute_s_per_step"],
+        "step_s": row["compute_s_steps"],
+        "median_s": row["compute_s_median"],
         "mean_s": row["compute_s_per_step"],
-        "median_is_mean": not step_s,
     }
 
 

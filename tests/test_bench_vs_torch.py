@@ -132,7 +132,7 @@ def test_main_times_both_sides_and_writes_json(arm_root, tmp_path, capsys):
     (row,) = result["rows"]
     assert row["name"] == "preset:tiny" and (row["shape"]["G"], row["shape"]["B"]) == (8, 2)
     jax_side, torch_side = row["jax"], row["torch"]
-    assert len(jax_side["step_s"]) == 1 and not jax_side["median_is_mean"]
+    assert len(jax_side["step_s"]) == 1 and jax_side["median_s"] == jax_side["step_s"][0]
     assert jax_side["row"]["phase"] == "skel" and jax_side["row"]["steps"] == 1
     assert len(torch_side["step_s"]) == 1 and torch_side["median_s"] > 0
     assert torch_side["params"] == torch_side["nmjax_params"]

@@ -33,6 +33,7 @@ import dataclasses
 import json
 import os
 import resource
+import statistics
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -121,6 +122,8 @@ def _row(
         "frames_per_s": steps * frames / total,
         "load_s_per_step": sum(load) / steps,
         "compute_s_per_step": sum(compute) / steps,
+        "compute_s_median": statistics.median(compute),
+        "compute_s_steps": compute,
         "compile_s": compile_s,
         "memory": memory,
         "data": note,

@@ -91,7 +91,7 @@ def test_twin_computes_the_detector_and_its_loss(grid, stride):
     voxels = (np.random.default_rng(0).random((b, t, grid, grid, grid)) < 0.2).astype(np.float32)
 
     def loss_fn(model):
-        out = model(jnp.asarray(voxels))
+        out = {"voxels": jnp.asarray(voxels), **model(jnp.asarray(voxels))}
         return losses.skeleton_loss(out, cfg.weights)[0], out
 
     (loss, out), grads = nnx.jit(nnx.value_and_grad(loss_fn, has_aux=True))(detector)

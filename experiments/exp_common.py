@@ -21,7 +21,7 @@ import sys
 import time
 from pathlib import Path
 
-from nmjax import io, runs
+from nmjax import atomic, runs
 from nmjax.config import dyn_preset, skel_preset
 from nmjax.data.datasets import load_sequences
 from nmjax.train import common, skel
@@ -73,7 +73,7 @@ def skel_run(data: str, variant: str, steps: int) -> Path:
         tic = time.perf_counter()
         summary = skel.train(cfg, run, overwrite=True, progress=False)
         runs.finish_phase1(run)
-        io.write_json(
+        atomic.write_json(
             run / "experiment.json",
             {"steps": steps, "seconds": time.perf_counter() - tic, "summary": summary},
         )
@@ -100,7 +100,7 @@ def dyn_run(data: str, model: str, skel: Path, steps: int) -> Path:
             shutil.rmtree(run)
         tic = time.perf_counter()
         runs.train_dynamics(cfg, progress=False)
-        io.write_json(
+        atomic.write_json(
             run / "experiment.json", {"steps": steps, "seconds": time.perf_counter() - tic}
         )
     return run

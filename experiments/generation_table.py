@@ -22,7 +22,7 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.cli import main as nmjax_main
 from nmjax.config import DynTrainConfig, dyn_preset
 from nmjax.evaluate import (
@@ -66,7 +66,7 @@ def phase2_run(data: str, model: str, skel: Path, steps: int, preset: str, runs:
     argv = ["--data", data, "--skel-run", str(skel), "--model", model, "--preset", preset]
     if nmjax_main(["train-dyn", *argv, "--steps", str(steps), "--run", str(run)]) != 0:
         raise SystemExit(f"nmjax train-dyn {' '.join(argv)} failed")
-    io.write_json(info, {"steps": steps, "seconds": time.perf_counter() - tic})
+    atomic.write_json(info, {"steps": steps, "seconds": time.perf_counter() - tic})
     return run
 
 
@@ -205,7 +205,7 @@ def main() -> None:
         ]
     )
     path = args.results / f"generation_{args.data}.md"
-    io.write_text(path, text)
+    atomic.write_text(path, text)
     print(f"wrote {path}")
 
 

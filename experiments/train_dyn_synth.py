@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import dyn_preset
 from nmjax.data import synthetic
 from nmjax.data.voxelize import normalize_sequence
@@ -56,9 +56,9 @@ def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
             _, joints = normalize_sequence(seq.vertices, seq.joints)
             alpha = np.ones((*joints.shape[:2], 1), np.float32)
             trajectories[name] = np.concatenate([joints, alpha], axis=-1)
-        io.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
+        atomic.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
     parents = [int(p) for p in body.parents]
-    io.write_json(
+    atomic.write_json(
         folder / "skeleton.json",
         {"parents": parents, "root": parents.index(0), "order": topological_order(parents)},
     )
@@ -143,7 +143,7 @@ def main() -> None:
         print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"train_dyn_{args.data}"
-    io.write_json(
+    atomic.write_json(
         stem.with_suffix(".json"),
         {
             "data": args.data,

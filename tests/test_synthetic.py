@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.data import synthetic
 
 NAMES = ("synth-hand", "synth-arm", "synth-human", "synth-quadruped")
@@ -214,7 +214,7 @@ def test_interrupted_generation_is_not_complete(tmp_path, monkeypatch):
     root = synthetic.generate("synth-quadruped", tmp_path / "q", seed=1, **TINY)
     assert synthetic.is_complete(root)
     calls = []
-    real_save = io.save_npy
+    real_save = atomic.save_npy
 
     def save_then_interrupt(path, array):
         calls.append(path)
@@ -222,12 +222,12 @@ def test_interrupted_generation_is_not_complete(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         real_save(path, array)
 
-    monkeypatch.setattr(io, "save_npy", save_then_interrupt)
+    monkeypatch.setattr(atomic, "save_npy", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         synthetic.generate("synth-quadruped", root, seed=2, **TINY)
     assert not synthetic.is_complete(root)
     assert not (root / "meta.json").exists()
-    monkeypatch.setattr(io, "save_npy", real_save)
+    monkeypatch.setattr(atomic, "save_npy", real_save)
     synthetic.generate("synth-quadruped", root, seed=2, **TINY)
     assert synthetic.is_complete(root)
     assert files_of(root) == files_of(

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import (
     PRESETS,
     add_override_argument,
@@ -724,6 +724,6 @@ def optimisations_main(argv: Sequence[str]) -> int:
     print()
     print(format_optimisations(rows))
     if args.out is not None:
-        io.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
         print(f"wrote {args.out}")
     return 0

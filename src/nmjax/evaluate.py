@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import io, metrics, runs, tasks
+from nmjax import atomic, metrics, runs, tasks
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
 from nmjax.train import common
@@ -764,8 +764,8 @@ def evaluate_generation_run(
         **gen,
     }
     out = Path(out) if out is not None else run / "eval"
-    io.write_json(out / "generation.json", results)
-    io.write_text(out / "generation.md", generation_markdown(results))
+    atomic.write_json(out / "generation.json", results)
+    atomic.write_text(out / "generation.md", generation_markdown(results))
     plot_generation(out / "generation.png", results, title=f"{run.name}: generation")
     return results
 
@@ -836,8 +836,8 @@ def evaluate_run(
             "mcd_scale": MCD_SCALE,
         }
     out = Path(out) if out is not None else run / "eval"
-    io.write_json(out / "results.json", results)
-    io.write_text(out / "tables.md", markdown_tables(results))
+    atomic.write_json(out / "results.json", results)
+    atomic.write_text(out / "tables.md", markdown_tables(results))
     if "interpolation" in results:
         plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
     return results

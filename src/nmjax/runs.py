@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import DynTrainConfig, SkelTrainConfig
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
@@ -207,7 +207,7 @@ def export_keypoints(
         keypoints = keypoints.reshape(-1, *keypoints.shape[2:])  # windows joined in time
         arrays[seq.name] = keypoints[: len(voxels)].astype(np.float32)
     path = keypoints_file(run, split) if path is None else Path(path)
-    io.save_npz(path, **arrays)
+    atomic.save_npz(path, **arrays)
     return path
 
 

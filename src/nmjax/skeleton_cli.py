@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.data.voxelize import voxel_points
 from nmjax.skeleton import Skeleton
 
@@ -49,5 +49,5 @@ def draw_skeleton(
     buffer = _io.BytesIO()
     fig.savefig(buffer, format="png", dpi=120, bbox_inches="tight")
     plt.close(fig)
-    with io.atomic_open(path, "wb") as f:
+    with atomic.writer(path, "wb") as f:
         f.write(buffer.getvalue())

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import geometry, io, runs
+from nmjax import atomic, geometry, runs
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common
 
@@ -464,7 +464,7 @@ def run_generate(
         num_samples=samples,
     )
     keypoints = np.asarray(keypoints)
-    io.save_npz(
+    atomic.save_npz(
         out / "generate.npz",
         keypoints=keypoints,
         observed=observed,
@@ -483,7 +483,7 @@ def run_generate(
             [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
         )
         decoded = [detector.decode(keypoints[:, s], first) for s in range(samples)]
-        io.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
+        atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
         held = real_frames[i] < cond + gen  # the sequence ends before the horizon
@@ -521,7 +521,7 @@ def run_interpolate(
     methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
     key = jax.random.key(seed)
     results = {m: interp.run(m, truth[:, 0], truth[:, -1], gap, key) for m in methods}
-    io.save_npz(
+    atomic.save_npz(
         out / "interpolate.npz",
         truth=truth,
         names=np.array(names),
@@ -552,7 +552,7 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """A triangle mesh as Wavefront .obj text, atomically."""
     lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    io.write_text(path, "\n".join(lines) + "\n")
+    atomic.write_text(path, "\n".join(lines) + "\n")
 
 
 def run_retarget(
@@ -631,7 +631,7 @@ def run_retarget(
         write_obj(out / f"frame_{t:04d}.obj", verts, faces)
     joints_mesh = (np.asarray(joints) + 1.0) / scale + bmin
     src_mu = np.asarray(x_src[0])
-    io.save_npz(
+    atomic.save_npz(
         out / "retarget.npz",
         source_keypoints=src_mu,
         target_keypoints=target_kp,

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 
@@ -86,7 +86,7 @@ def write_gif(path: Path, images: list[np.ndarray], fps: float = 8.0) -> None:
     import imageio.v3 as iio
 
     data = iio.imwrite("<bytes>", np.stack(images), extension=".gif", duration=1000 / fps, loop=0)
-    with io.atomic_open(path, "wb") as f:
+    with atomic.writer(path, "wb") as f:
         f.write(data)
 
 
@@ -97,7 +97,7 @@ def write_strip(path: Path, images: list[np.ndarray], columns: int = 6) -> None:
     idx = np.unique(np.linspace(0, len(images) - 1, columns).astype(int))
     buffer = _io.BytesIO()
     iio.imwrite(buffer, np.concatenate([images[i] for i in idx], axis=0), extension=".png")
-    with io.atomic_open(path, "wb") as f:
+    with atomic.writer(path, "wb") as f:
         f.write(buffer.getvalue())
 
 

@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from nmjax import io  # noqa: E402
+from nmjax import atomic  # noqa: E402
 
 
 def save_figure(
@@ -30,7 +30,7 @@ def save_figure(
         fig.suptitle(title)
     if tight:
         fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
+    with atomic.writer(path, "wb") as f:
         fig.savefig(f, format="png", dpi=dpi)
     plt.close(fig)
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import DATASETS, dataset_spec
 from nmjax.data.datasets import (
     JOINT_FILE_PATTERNS,
@@ -104,13 +104,13 @@ def write_sequence(
     for kind, array in arrays.items():
         if array is not None:
             file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
-            io.save_npy(root / split / kind / file, array)
+            atomic.save_npy(root / split / kind / file, array)
 
 
 def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:
     """Writes `<root>/split.json`, then `<root>/meta.json`: meta last marks the set complete."""
-    io.write_json(root / "split.json", split)
-    io.write_json(root / "meta.json", meta)
+    atomic.write_json(root / "split.json", split)
+    atomic.write_json(root / "meta.json", meta)
 
 
 def _clear(root: Path) -> None:

@@ -26,7 +26,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import io, losses
+from nmjax import atomic, losses
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics
 from nmjax.train import common, parallel
@@ -248,7 +248,7 @@ def plot_motion(
             kind = "cond" if t < t_cond else "gen"
             ax.set_title(f"{label} t={t}" + (f" ({kind})" if row else ""), fontsize=8)
     fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
+    with atomic.writer(path, "wb") as f:
         fig.savefig(f, format="png", dpi=80)
     plt.close(fig)
 

@@ -23,7 +23,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import io, losses, metrics
+from nmjax import atomic, losses, metrics
 from nmjax.config import LossWeights, SkelTrainConfig
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
@@ -321,9 +321,9 @@ def write_artifacts(
     _, keypoints = validate(make_steps(graphdef, cfg, mesh)[1], cfg, mesh, state, val_batches)
     if not parallel.is_primary():
         return
-    io.save_npy(run / "affinity.npy", affinity)
+    atomic.save_npy(run / "affinity.npy", affinity)
     flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
-    io.save_npz(
+    atomic.save_npz(
         run / "keypoint_stats.npz",
         intensities=flat[:, :, 3].mean(axis=0).astype(np.float32),
         rest_positions=flat[:, :, :3].mean(axis=0).astype(np.float32),

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.sparse import csgraph
 
 from nmjax import atomic
-from nmjax.data.datasets import read_meta
+from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import Detector
 from nmjax.skeleton import METHODS, extract_skeleton, prune

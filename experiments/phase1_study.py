@@ -39,7 +39,7 @@ import numpy as np
 from nmjax import atomic, metrics, runs
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.data import synthetic
-from nmjax.data.datasets import dataset_root
+from nmjax.data.layout import dataset_root
 from nmjax.evaluate import evaluate_phase1, phase1_outputs
 from nmjax.runs import Detector
 
@@ -96,8 +96,7 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     )
     if variant.sequences is not None:
         root = dataset_root(data).parent / f"{data}-n{variant.sequences}-seed1"
-        if not synthetic.is_complete(root):
-            synthetic.generate(data, root, num_sequences=variant.sequences, seed=1)
+        synthetic.ensure_dataset(data, root, num_sequences=variant.sequences, seed=1)
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root)))
     return cfg
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from nmjax import atomic
 from nmjax.config import dyn_preset
-from nmjax.data import synthetic
+from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
 from nmjax.train import common
 
@@ -44,8 +44,8 @@ def topological_order(parents: list[int]) -> list[int]:
 
 def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
     """A C10-layout folder from ground-truth joints of `sequences` generated sequences."""
-    body = synthetic.get_body(data)
-    splits = synthetic.split_names(sequences)
+    body = bodies.get_body(data)
+    splits = layout.split_names(sequences)
     rng = np.random.default_rng(seed)
     children = iter(rng.spawn(sequences))
     for split in ("train", "test"):
@@ -98,7 +98,7 @@ def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str)
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="synth-arm", choices=sorted(synthetic.BODIES))
+    parser.add_argument("--data", default="synth-arm", choices=sorted(bodies.BODIES))
     parser.add_argument("--skel-run", default=None, help="a phase-1 run (default: oracle input)")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=6000)

@@ -232,6 +232,7 @@ def train(
         checkpoint stays on disk.
     """
     from nmjax.data import pipeline
+    from nmjax.data.synthetic import ensure_dataset
 
     check_config(cfg)
     if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
@@ -241,6 +242,8 @@ def train(
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
     )
+    # A synthetic set is generated on first use here, explicitly: the loaders never write.
+    ensure_dataset(cfg.data.name, cfg.data.root)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
     run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)

@@ -22,15 +22,15 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import atomic
+from nmjax import atomic, viz
 from nmjax.cli import main as nmjax_main
 from nmjax.config import DynTrainConfig, dyn_preset
 from nmjax.evaluate import (
     GEN_HORIZONS,
+    REFERENCE,
     evaluate_generation_run,
     fmt,
     generation_markdown,
-    plot_generation,
 )
 from nmjax.train import common
 
@@ -179,7 +179,9 @@ def main() -> None:
         clips=args.clips,
     )
     plot = f"generation_{args.data}.png"
-    plot_generation(args.results / plot, results, title=f"{args.data}: generation")
+    viz.plot_generation(
+        args.results / plot, results, reference=REFERENCE, title=f"{args.data}: generation"
+    )
     _, body = generation_markdown(results).split("\n", 1)  # without its title
     text = "\n".join(
         [

@@ -15,13 +15,12 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import atomic
+from nmjax import atomic, viz
 from nmjax.evaluate import (
     SAMPLING_RATES,
     evaluate_interpolation,
     evaluate_run,
     interpolation_table,
-    plot_mcd,
 )
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
@@ -78,7 +77,7 @@ def main() -> None:
             max_crops=1,
         )
         mcd = res["interpolation"]
-        plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
+        viz.plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
         lines = interpolation_table(mcd, data) + [f"![M-CD](table11_12_{data}.png)", ""]
         sections.append("\n".join(lines))
     atomic.write_text(

@@ -300,7 +300,7 @@ def extract_run_skeleton(
     Returns:
       The `Skeleton` written to `<run>/skeleton.json`.
     """
-    from nmjax.skeleton_cli import draw_skeleton
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     run = Path(run)
     n_neighbors = DEFAULT_NEIGHBORS if n_neighbors is None else n_neighbors
@@ -317,7 +317,7 @@ def extract_run_skeleton(
         pruned_parents=list(pruned.parents),
         keep=keep.tolist(),
     )
-    draw_skeleton(
+    viz.draw_skeleton(
         run / "figures" / "skeleton.png",
         skeleton,
         stats["example_keypoints"],

@@ -447,7 +447,7 @@ def run_generate(
     occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
     samples).
     """
-    from nmjax.tasks_cli import write_motion_pictures
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
@@ -489,7 +489,7 @@ def run_generate(
         held = real_frames[i] < cond + gen  # the sequence ends before the horizon
         labels = [f"observed (held from {real_frames[i]})" if held else "observed"]
         labels += [f"sample {s}" for s in range(samples)]
-        write_motion_pictures(out / name, motions, labels, model.parents)
+        viz.write_motion_pictures(out / name, motions, labels, model.parents)
     return out
 
 
@@ -511,7 +511,7 @@ def run_interpolate(
     Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names, parents) and per input a
     GIF and PNG strip with one panel per method and the truth.
     """
-    from nmjax.tasks_cli import write_motion_pictures
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "interpolate"
@@ -530,7 +530,7 @@ def run_interpolate(
     )
     for i, name in enumerate(names):
         motions = [truth[i]] + [results[m][i] for m in methods]
-        write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
+        viz.write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
     return out
 
 
@@ -579,8 +579,8 @@ def run_retarget(
     Returns:
       the output folder.
     """
+    from nmjax import viz  # matplotlib only where a picture is drawn
     from nmjax.skeleton import skin_weights
-    from nmjax.tasks_cli import write_motion_pictures
 
     mesh = load_mesh(target)
     model, cfg, skel_run = runs.load_phase2(run)
@@ -643,7 +643,7 @@ def run_retarget(
     # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
     sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)
     tri_centres = np.asarray(moved)[:, faces[sub]].mean(axis=2)  # (T, P, 3) a surface sketch
-    write_motion_pictures(
+    viz.write_motion_pictures(
         out / "retarget",
         [src_mu, np.asarray(joints)],
         [f"source {name}", f"retargeted {Path(target).name}"],

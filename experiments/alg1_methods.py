@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse import csgraph
 
-from nmjax import io
-from nmjax.data.datasets import read_meta
+from nmjax import atomic
+from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import Detector
 from nmjax.skeleton import METHODS, extract_skeleton, prune
@@ -113,7 +113,7 @@ def main() -> int:
         for m in METHODS
     }
     command = "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv)
-    io.write_json(
+    atomic.write_json(
         RESULTS / "alg1_methods.json", {"command": command, "runs": rows, "random28_ms": random28}
     )
     lines = [
@@ -145,7 +145,7 @@ def main() -> int:
         + ", ".join(f"{m} {v:.3f} ms" for m, v in random28.items()),
         "",
     ]
-    io.write_text(RESULTS / "alg1_methods.md", "\n".join(lines))
+    atomic.write_text(RESULTS / "alg1_methods.md", "\n".join(lines))
     print("\n".join(lines))
     return 0
 

@@ -88,7 +88,7 @@ try:
 except ImportError:  # optional: the twin needs it, `--only jax` does not
     torch = F = nn = None
 
-from nmjax import bench, io
+from nmjax import atomic, bench
 from nmjax.config import PRESETS, SkelTrainConfig, apply_overrides, skel_preset
 from nmjax.models.blocks import LEAK, hourglass_levels, num_groups
 
@@ -742,7 +742,7 @@ def main(argv: Sequence[str]) -> int:
     print()
     print(format_table(rows))
     if args.out is not None:
-        io.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
         print(f"wrote {args.out}")
     return 0
 

@@ -21,9 +21,10 @@ import sys
 import time
 from pathlib import Path
 
-from nmjax import io, runs
+from nmjax import atomic, runs
 from nmjax.config import dyn_preset, skel_preset
 from nmjax.data.datasets import load_sequences
+from nmjax.data.synthetic import ensure_dataset
 from nmjax.train import common, skel
 
 RESULTS = Path(__file__).parent / "results"
@@ -43,7 +44,7 @@ def skel_config(data: str, variant: str, steps: int):
     milestones = (max(1, int(steps * 2 / 3)), max(1, int(steps * 5 / 6)))
     cfg = dataclasses.replace(cfg, lr_milestones=milestones)
     if variant == "gt":
-        seq = load_sequences(data, "train", cfg.data.root)[0]
+        seq = load_sequences(data, "train", ensure_dataset(data, cfg.data.root))[0]
         if seq.joints is None:
             raise ValueError(f"{data} has no ground-truth joints; the GT variant needs them")
         cfg = dataclasses.replace(
@@ -73,7 +74,7 @@ def skel_run(data: str, variant: str, steps: int) -> Path:
         tic = time.perf_counter()
         summary = skel.train(cfg, run, overwrite=True, progress=False)
         runs.finish_phase1(run)
-        io.write_json(
+        atomic.write_json(
             run / "experiment.json",
             {"steps": steps, "seconds": time.perf_counter() - tic, "summary": summary},
         )
@@ -100,7 +101,7 @@ def dyn_run(data: str, model: str, skel: Path, steps: int) -> Path:
             shutil.rmtree(run)
         tic = time.perf_counter()
         runs.train_dynamics(cfg, progress=False)
-        io.write_json(
+        atomic.write_json(
             run / "experiment.json", {"steps": steps, "seconds": time.perf_counter() - tic}
         )
     return run

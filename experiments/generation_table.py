@@ -22,15 +22,15 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import io
+from nmjax import atomic, viz
 from nmjax.cli import main as nmjax_main
 from nmjax.config import DynTrainConfig, dyn_preset
 from nmjax.evaluate import (
     GEN_HORIZONS,
+    REFERENCE,
     evaluate_generation_run,
     fmt,
     generation_markdown,
-    plot_generation,
 )
 from nmjax.train import common
 
@@ -66,7 +66,7 @@ def phase2_run(data: str, model: str, skel: Path, steps: int, preset: str, runs:
     argv = ["--data", data, "--skel-run", str(skel), "--model", model, "--preset", preset]
     if nmjax_main(["train-dyn", *argv, "--steps", str(steps), "--run", str(run)]) != 0:
         raise SystemExit(f"nmjax train-dyn {' '.join(argv)} failed")
-    io.write_json(info, {"steps": steps, "seconds": time.perf_counter() - tic})
+    atomic.write_json(info, {"steps": steps, "seconds": time.perf_counter() - tic})
     return run
 
 
@@ -179,7 +179,9 @@ def main() -> None:
         clips=args.clips,
     )
     plot = f"generation_{args.data}.png"
-    plot_generation(args.results / plot, results, title=f"{args.data}: generation")
+    viz.plot_generation(
+        args.results / plot, results, reference=REFERENCE, title=f"{args.data}: generation"
+    )
     _, body = generation_markdown(results).split("\n", 1)  # without its title
     text = "\n".join(
         [
@@ -205,7 +207,7 @@ def main() -> None:
         ]
     )
     path = args.results / f"generation_{args.data}.md"
-    io.write_text(path, text)
+    atomic.write_text(path, text)
     print(f"wrote {path}")
 
 

@@ -16,7 +16,7 @@ import json
 import exp_common as ec
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.data.voxelize import voxel_points
 from nmjax.evaluate import evaluate_phase1
 from nmjax.runs import Detector
@@ -71,7 +71,7 @@ def main() -> None:
             ax = fig.add_subplot(len(args.data), 2, 2 * i + j + 1, projection="3d")
             draw(ax, run, f"{data}: {label}")
     save_figure(fig, ec.RESULTS / "ltraj_ablation.png")
-    io.write_text(
+    atomic.write_text(
         ec.RESULTS / "ltraj_ablation.md",
         "# Appendix C.2: ablation of L_traj (skeletons side by side)\n\n"
         f"{ec.provenance(runs)}\n"

@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io, metrics, runs
+from nmjax import atomic, metrics, runs
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.data import synthetic
-from nmjax.data.datasets import dataset_root
+from nmjax.data.layout import dataset_root
 from nmjax.evaluate import evaluate_phase1, phase1_outputs
 from nmjax.runs import Detector
 
@@ -96,8 +96,7 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     )
     if variant.sequences is not None:
         root = dataset_root(data).parent / f"{data}-n{variant.sequences}-seed1"
-        if not synthetic.is_complete(root):
-            synthetic.generate(data, root, num_sequences=variant.sequences, seed=1)
+        synthetic.ensure_dataset(data, root, num_sequences=variant.sequences, seed=1)
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(root)))
     return cfg
 
@@ -147,7 +146,7 @@ def run_variant(
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)
     results["localisation"] = localisation(detector, max_crops)
-    io.write_json(run / "study_eval.json", results)
+    atomic.write_json(run / "study_eval.json", results)
     skeleton = json.loads((run / "skeleton.json").read_text())
     return {
         "data": data,
@@ -197,7 +196,7 @@ def fmt(x, digits: int = 3) -> str:
 
 
 def write_report(rows: list[dict]) -> None:
-    io.write_json(RESULTS / "phase1_study.json", rows)
+    atomic.write_json(RESULTS / "phase1_study.json", rows)
     lines = [
         "# Phase-1 study at CPU scale",
         "",
@@ -233,7 +232,7 @@ def write_report(rows: list[dict]) -> None:
         f"commit {r.get('commit') or 'n/a'}): `{r['command']}`"
         for r in rows
     ]
-    io.write_text(RESULTS / "phase1_study.md", "\n".join(lines) + "\n")
+    atomic.write_text(RESULTS / "phase1_study.md", "\n".join(lines) + "\n")
 
 
 def main() -> int:

@@ -15,7 +15,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from nmjax.data import synthetic
+from nmjax.data import bodies, synthetic
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 NAMES = ("synth-hand", "synth-arm", "synth-human", "synth-quadruped")
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     fig = plt.figure(figsize=(10, 10))
     rng = np.random.default_rng(args.seed)
     for panel, name in enumerate(NAMES):
-        body = synthetic.get_body(name)
+        body = bodies.get_body(name)
         sequence = synthetic.simulate(name, 40, rng=args.seed + panel)
         points = sequence.vertices[args.frame]
         points = points[rng.choice(len(points), args.shown_points, replace=False)]

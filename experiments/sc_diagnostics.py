@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import metrics
-from nmjax.data.datasets import read_meta
+from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import Detector
 

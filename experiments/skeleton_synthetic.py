@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import normalize_sequence, voxelize
 from nmjax.runs import extract_run_skeleton
@@ -53,9 +53,9 @@ def main() -> None:
         affinity = motion_affinity(joints)[None]
         num = joints.shape[1]
         run = Path(tmp) / f"skel-{args.data}-demo"
-        io.save_npy(run / "affinity.npy", affinity.astype(np.float32))
+        atomic.save_npy(run / "affinity.npy", affinity.astype(np.float32))
         keypoints = np.concatenate([joints[0], np.ones((num, 1))], axis=1).astype(np.float32)
-        io.save_npz(
+        atomic.save_npz(
             run / "keypoint_stats.npz",
             intensities=np.ones(num, np.float32),
             rest_positions=joints.mean(axis=0).astype(np.float32),

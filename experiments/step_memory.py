@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import blocks
@@ -90,7 +90,7 @@ def main() -> None:
             flush=True,
         )
     if args.out is not None:
-        io.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
         print(f"wrote {args.out}")
 
 

@@ -15,13 +15,12 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import io
+from nmjax import atomic, viz
 from nmjax.evaluate import (
     SAMPLING_RATES,
     evaluate_interpolation,
     evaluate_run,
     interpolation_table,
-    plot_mcd,
 )
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
@@ -78,10 +77,10 @@ def main() -> None:
             max_crops=1,
         )
         mcd = res["interpolation"]
-        plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
+        viz.plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
         lines = interpolation_table(mcd, data) + [f"![M-CD](table11_12_{data}.png)", ""]
         sections.append("\n".join(lines))
-    io.write_text(
+    atomic.write_text(
         ec.RESULTS / "table11_12_interpolation.md",
         "# Tables 11-12: interpolation M-CD x1e3 (Eq. 22; 95% CI over test sequences)\n\n"
         f"{ec.provenance(runs)}\n" + "\n".join(sections) + f"\n{PAPER}\n",
@@ -113,7 +112,7 @@ def keypoints_only(args) -> None:
         sections += [f"## {data}", ""] + interpolation_table(
             errors, "In-between keypoint error (sum over K of squared xyz; 95% CI over sequences)"
         )
-    io.write_text(
+    atomic.write_text(
         ec.RESULTS / "table11_12_keypoints.md",
         "# Tables 11-12, decoder-free: in-between keypoint error of the interpolations\n\n"
         f"{ec.provenance(runs)}\n" + "\n".join(sections) + "\n",

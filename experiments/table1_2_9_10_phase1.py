@@ -19,7 +19,7 @@ import argparse
 
 import exp_common as ec
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.evaluate import evaluate_phase1, fmt
 from nmjax.runs import Detector
 
@@ -80,7 +80,7 @@ def main() -> None:
         return out
 
     if "ours" in args.variants:
-        io.write_text(
+        atomic.write_text(
             ec.RESULTS / "table1_sc.md",
             "# Table 1: semantic consistency (SC-score, Eq. 21)\n\n"
             + head
@@ -97,7 +97,7 @@ def main() -> None:
             f"Table 1 at CPU scale ({args.steps} steps)",
         )
     if {"ours", "gt"} <= set(args.variants):
-        io.write_text(
+        atomic.write_text(
             ec.RESULTS / "table2_tracking.md",
             "# Table 2: 4D-tracking Chamfer distance x1e4 (95% CI over test sequences)\n\n"
             + head
@@ -113,7 +113,7 @@ def main() -> None:
             f"Table 2 at CPU scale ({args.steps} steps)",
         )
     if {"ours", "no_vol"} <= set(args.variants):
-        io.write_text(
+        atomic.write_text(
             ec.RESULTS / "table9_10_no_vol.md",
             "# Tables 9-10: ablation without L_vol\n\n"
             + head

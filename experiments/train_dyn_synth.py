@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import dyn_preset
-from nmjax.data import synthetic
+from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
 from nmjax.train import common
 
@@ -44,8 +44,8 @@ def topological_order(parents: list[int]) -> list[int]:
 
 def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
     """A C10-layout folder from ground-truth joints of `sequences` generated sequences."""
-    body = synthetic.get_body(data)
-    splits = synthetic.split_names(sequences)
+    body = bodies.get_body(data)
+    splits = layout.split_names(sequences)
     rng = np.random.default_rng(seed)
     children = iter(rng.spawn(sequences))
     for split in ("train", "test"):
@@ -56,9 +56,9 @@ def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
             _, joints = normalize_sequence(seq.vertices, seq.joints)
             alpha = np.ones((*joints.shape[:2], 1), np.float32)
             trajectories[name] = np.concatenate([joints, alpha], axis=-1)
-        io.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
+        atomic.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
     parents = [int(p) for p in body.parents]
-    io.write_json(
+    atomic.write_json(
         folder / "skeleton.json",
         {"parents": parents, "root": parents.index(0), "order": topological_order(parents)},
     )
@@ -98,7 +98,7 @@ def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str)
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", default="synth-arm", choices=sorted(synthetic.BODIES))
+    parser.add_argument("--data", default="synth-arm", choices=sorted(bodies.BODIES))
     parser.add_argument("--skel-run", default=None, help="a phase-1 run (default: oracle input)")
     parser.add_argument("--preset", default="cpu")
     parser.add_argument("--steps", type=int, default=6000)
@@ -143,7 +143,7 @@ def main() -> None:
         print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"train_dyn_{args.data}"
-    io.write_json(
+    atomic.write_json(
         stem.with_suffix(".json"),
         {
             "data": args.data,

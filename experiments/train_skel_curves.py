@@ -15,7 +15,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.losses import TERMS
 from nmjax.train import common
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
@@ -73,7 +73,7 @@ def main() -> None:
         "val": val,
     }
     args.out.mkdir(parents=True, exist_ok=True)
-    io.write_json(args.out / f"train_skel_{data}.json", summary)
+    atomic.write_json(args.out / f"train_skel_{data}.json", summary)
     plot(
         train,
         val,

@@ -1,26 +1,24 @@
-"""nmjax.data.datasets on tiny datasets written by the tests: layout, splits, crops, bad input."""
+"""nmjax.data.datasets and .layout on tiny datasets written by the tests: layout, splits, crops,
+bad input."""
 
 from __future__ import annotations
 
 import hashlib
 import json
-import sys
-import types
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from nmjax.data import datasets
+from nmjax.data import layout
 from nmjax.data.datasets import (
     Sequence,
     crop_indices,
     crop_sequence,
-    dataset_root,
     load_sequences,
     sample_start,
-    split_by_frames,
 )
+from nmjax.data.layout import dataset_root, split_by_frames
 
 
 def write_sequence(
@@ -220,28 +218,27 @@ def test_bad_joints(tmp_path, joints, match):
     assert str(path) in str(err.value)
 
 
-def test_synthetic_generated_on_first_use(tmp_path, monkeypatch):
-    calls = []
-
-    def generate(name, root, **kwargs):
-        calls.append((name, Path(root)))
-        write_sequence(Path(root), "train", "s0", 3)
-        write_sequence(Path(root), "test", "s1", 3)
-        (Path(root) / "meta.json").write_text(json.dumps({"name": name}))
-        return Path(root)
-
-    monkeypatch.setitem(
-        sys.modules, "nmjax.data.synthetic", types.SimpleNamespace(generate=generate)
-    )
-    import nmjax.data
-
-    monkeypatch.setattr(nmjax.data, "synthetic", sys.modules["nmjax.data.synthetic"], raising=False)
+def test_a_missing_synthetic_set_is_an_error_naming_the_command(tmp_path, monkeypatch):
     monkeypatch.setenv("NMJAX_DATA", str(tmp_path))
+    with pytest.raises(FileNotFoundError) as err:
+        load_sequences("synth-arm", "train")
+    root = tmp_path / "synth-arm"
+    assert f"nmjax prepare-data --data synth-arm --root {root}" in str(err.value)
+    assert "ensure_dataset" in str(err.value)
+    assert not root.exists()  # the loader does not generate it
+
+
+def test_a_synthetic_set_loads_once_its_meta_marks_it_complete(tmp_path, monkeypatch):
+    monkeypatch.setenv("NMJAX_DATA", str(tmp_path))
+    root = tmp_path / "synth-arm"
+    write_sequence(root, "train", "s0", 3)
+    write_sequence(root, "test", "s1", 3)
+    with pytest.raises(FileNotFoundError, match=r"--root .*synth-arm --overwrite"):
+        load_sequences("synth-arm", "train")
+    (root / "meta.json").write_text(json.dumps({"name": "synth-arm", "complete": True}))
     assert [s.name for s in load_sequences("synth-arm", "train")] == ["s0"]
-    assert calls == [("synth-arm", tmp_path / "synth-arm")]
     assert [s.name for s in load_sequences("synth-arm", "test")] == ["s1"]
-    assert len(calls) == 1  # generated once
-    assert datasets.read_meta("synth-arm") == {"name": "synth-arm"}
+    assert layout.read_meta("synth-arm") == {"name": "synth-arm", "complete": True}
 
 
 def test_crop_indices_rate_and_padding():

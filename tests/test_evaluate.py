@@ -48,14 +48,6 @@ def test_summaries_per_rate_and_their_table():
     assert lines[6:] == [""] and evaluate.interpolation_table({}, "M-CD") == []
 
 
-def test_plot_mcd_writes_one_png_atomically(tmp_path):
-    summary = evaluate.summarize_per_rate({"Ours": {3: {"a": 1.0, "b": 2.0}, 5: {"a": 3.0}}})
-    path = tmp_path / "figures" / "mcd.png"
-    evaluate.plot_mcd(path, summary, title="M-CD")
-    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert [p.name for p in path.parent.iterdir()] == ["mcd.png"]  # no temporary file left
-
-
 def test_keyframe_starts_fit_inside_the_sequence():
     np.testing.assert_array_equal(evaluate.keyframe_starts(12, 3, 10), [0, 3, 6])
     np.testing.assert_array_equal(evaluate.keyframe_starts(12, 5, 10), [0, 5])

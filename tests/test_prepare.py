@@ -13,7 +13,8 @@ import pytest
 import trimesh
 
 from nmjax.cli import main as nmjax_main
-from nmjax.data.datasets import load_sequences, split_by_frames
+from nmjax.data.datasets import load_sequences
+from nmjax.data.layout import split_by_frames
 
 POINTS = 300
 

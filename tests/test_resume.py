@@ -19,7 +19,7 @@ import pytest
 from test_train_dyn import make_fake_run, tiny_cfg
 from test_train_skel import _cfg as skel_cfg
 
-from nmjax import io, runs
+from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.train import common, skel
 
@@ -130,7 +130,9 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
 def test_missing_export_is_an_error_naming_the_command(tmp_path, capsys, fake_run):
     phase1 = tmp_path / "skel-synth-arm-1"
     phase1.mkdir()
-    io.write_json(phase1 / "skeleton.json", json.loads((fake_run / "skeleton.json").read_text()))
+    atomic.write_json(
+        phase1 / "skeleton.json", json.loads((fake_run / "skeleton.json").read_text())
+    )
     argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(phase1), "--preset", "tiny"]
     assert nmjax_main([*argv, "--run", str(tmp_path / "dyn")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()

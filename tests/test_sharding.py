@@ -147,7 +147,7 @@ def _script_dyn(workdir: Path) -> dict:
     import jax.numpy as jnp
     from jax.sharding import PartitionSpec as P
 
-    from nmjax import io, runs
+    from nmjax import atomic, runs
     from nmjax.train import dyn, parallel
 
     cfg = _dyn_cfg()
@@ -185,12 +185,12 @@ def _script_dyn(workdir: Path) -> dict:
     # A phase-1 run folder (contract C10) for the trainer, which must refuse batch 3 up front.
     skel_run = workdir / "skel-synth-arm-1"
     skel_run.mkdir()
-    io.write_json(
+    atomic.write_json(
         skel_run / "skeleton.json",
         {"parents": list(PARENTS), "root": 0, "order": list(ORDER), "depth": 3},
     )
     for split in ("train", "test"):
-        io.save_npz(skel_run / f"keypoints_{split}.npz", seq=poses)
+        atomic.save_npz(skel_run / f"keypoints_{split}.npz", seq=poses)
     refusal = ""
     odd = dataclasses.replace(_dyn_cfg(3), skel_run=str(skel_run), run=str(workdir / "odd"))
     try:

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from nmjax import cli, io
+from nmjax import atomic, cli
 from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
     Skeleton,
@@ -358,7 +358,7 @@ def test_save_and_load_round_trip(tmp_path):
     assert data["order"] == list(skeleton.order) and len(data["intensities"]) == 15
     with pytest.raises(FileNotFoundError, match="nmjax extract-skeleton"):
         load_skeleton(tmp_path / "missing.json")
-    io.write_json(tmp_path / "bad.json", {"parents": [1, 0]})
+    atomic.write_json(tmp_path / "bad.json", {"parents": [1, 0]})
     with pytest.raises(ValueError, match="bad.json"):
         load_skeleton(tmp_path / "bad.json")
 
@@ -442,11 +442,11 @@ def test_lbs_identity_rigid_and_general():
 
 def fake_run(path, parents, rng, grid=8):
     num = len(parents)
-    io.save_npy(path / "affinity.npy", tree_affinity(parents, rng))
+    atomic.save_npy(path / "affinity.npy", tree_affinity(parents, rng))
     voxels = np.zeros((grid, grid, grid), dtype=np.float32)
     voxels[2:6, 3:5, 1:7] = 1.0
     keypoints = np.concatenate([rng.uniform(-1, 1, (num, 3)), rng.random((num, 1))], axis=1)
-    io.save_npz(
+    atomic.save_npz(
         path / "keypoint_stats.npz",
         intensities=keypoints[:, 3].astype(np.float32),
         rest_positions=keypoints[:, :3].astype(np.float32),
@@ -483,6 +483,6 @@ def test_extract_run_skeleton_names_missing_files(tmp_path):
     with pytest.raises(FileNotFoundError, match="affinity.npy"):
         extract_run_skeleton(tmp_path)
     fake_run(tmp_path, CHAIN, np.random.default_rng(0))
-    io.save_npz(tmp_path / "keypoint_stats.npz", intensities=np.ones(3))
+    atomic.save_npz(tmp_path / "keypoint_stats.npz", intensities=np.ones(3))
     with pytest.raises(ValueError, match="lacks"):
         extract_run_skeleton(tmp_path)

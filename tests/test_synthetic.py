@@ -1,4 +1,4 @@
-"""nmjax.data.synthetic: bodies, kinematics, surface sampling and the written sets (contract C4)."""
+"""nmjax.data.synthetic and .bodies: bodies, kinematics, surface sampling, the written sets (C4)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from nmjax import io
-from nmjax.data import synthetic
+from nmjax import atomic
+from nmjax.data import bodies, layout, synthetic
+from nmjax.data.datasets import load_sequences
 
 NAMES = ("synth-hand", "synth-arm", "synth-human", "synth-quadruped")
 TINY = {"num_sequences": 2, "frames": 5, "points": 2000, "progress": False}
@@ -30,7 +31,7 @@ def reaches_root(parents: list[int], node: int) -> bool:
 
 @pytest.mark.parametrize("name", NAMES)
 def test_parents_form_a_tree(name):
-    body = synthetic.get_body(name)
+    body = bodies.get_body(name)
     parents = body.parents
     assert len(parents) == len(body.joint_names) == len(set(body.joint_names))
     assert [i for i, p in enumerate(parents) if p == i] == [0]  # one root, its own parent
@@ -39,32 +40,32 @@ def test_parents_form_a_tree(name):
 
 
 def test_bodies_have_the_required_structure():
-    assert set(synthetic.BODIES) == set(NAMES)
-    hand = synthetic.get_body("synth-hand")
+    assert set(bodies.BODIES) == set(NAMES)
+    hand = bodies.get_body("synth-hand")
     assert len(hand.joints) >= 16
     for finger in ("thumb", "index", "middle", "ring", "pinky"):
         chain = [f"{finger}1", f"{finger}2", f"{finger}3", f"{finger}_tip"]
         index = [hand.joint_names.index(n) for n in chain]
         assert [hand.parents[i] for i in index[1:]] == index[:-1]  # three segments in a row
-    arm = synthetic.get_body("synth-arm")
+    arm = bodies.get_body("synth-arm")
     revolute = [arm.joints[j].name for j, d in arm.dofs if d.kind == "rotate"]
     assert revolute == [f"joint{i}" for i in range(1, 8)]
     assert {arm.joints[j].name for j, d in arm.dofs if d.kind == "slide"} == {
         "finger_left",
         "finger_right",
     }
-    assert len(synthetic.get_body("synth-human").joints) >= 15
-    assert synthetic.get_body("synth-human").speed > 0
+    assert len(bodies.get_body("synth-human").joints) >= 15
+    assert bodies.get_body("synth-human").speed > 0
 
 
 @pytest.mark.parametrize("name", NAMES)
 def test_bodies_are_about_unit_size(name):
-    extent = np.ptp(synthetic.rest_mesh(synthetic.get_body(name)).vertices, axis=0).max()
+    extent = np.ptp(synthetic.rest_mesh(bodies.get_body(name)).vertices, axis=0).max()
     assert 0.5 < extent < 1.6
 
 
 def test_pose_bends_a_finger_like_a_planar_chain():
-    hand = synthetic.get_body("synth-hand")
+    hand = bodies.get_body("synth-hand")
     columns = [(hand.joints[j].name, d) for j, d in hand.dofs]
     angles = np.zeros((1, len(columns)))
     theta = 0.7
@@ -85,7 +86,7 @@ def test_pose_bends_a_finger_like_a_planar_chain():
 
 
 def test_pose_slides_the_gripper_fingers_and_follows_the_root():
-    arm = synthetic.get_body("synth-arm")
+    arm = bodies.get_body("synth-arm")
     angles = np.zeros((2, len(arm.dofs)))
     for column, (_, dof) in enumerate(arm.dofs):
         if dof.kind == "slide":
@@ -102,7 +103,7 @@ def test_pose_slides_the_gripper_fingers_and_follows_the_root():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_motion_respects_limits_and_is_visible(name):
-    body = synthetic.get_body(name)
+    body = bodies.get_body(name)
     angles, root = synthetic.sample_motion(body, 60, np.random.default_rng(3))
     assert angles.shape == (60, len(body.dofs)) and root.shape == (60, 3)
     limits = body.limits
@@ -119,7 +120,7 @@ def test_motion_respects_limits_and_is_visible(name):
 
 
 def test_human_root_translates():
-    body = synthetic.get_body("synth-human")
+    body = bodies.get_body("synth-human")
     moved = [
         np.linalg.norm(
             np.ptp(synthetic.sample_motion(body, 60, np.random.default_rng(s))[1], axis=0)
@@ -131,7 +132,7 @@ def test_human_root_translates():
 
 @pytest.mark.parametrize("name", NAMES)
 def test_every_joint_lies_within_the_sampled_body(name):
-    body = synthetic.get_body(name)
+    body = bodies.get_body(name)
     sequence = synthetic.simulate(name, 5, points=2000, rng=11)
     radius = np.array([j.radius for j in body.joints])
     # (T, J, N) distances from every joint to every sampled point of its frame.
@@ -142,7 +143,7 @@ def test_every_joint_lies_within_the_sampled_body(name):
 
 @pytest.mark.parametrize("name", ["synth-hand", "synth-quadruped"])
 def test_samples_lie_on_the_surface_area_uniformly(name):
-    body = synthetic.get_body(name)
+    body = bodies.get_body(name)
     positions, rotations = synthetic.pose(body, np.zeros((1, len(body.dofs))), np.zeros((1, 3)))
     rng = np.random.default_rng(0)
     points = synthetic.sample_surface(body, positions, rotations, 20000, rng)[0]
@@ -164,7 +165,7 @@ def test_generate_writes_the_layout(tmp_path):
     )
     split = json.loads((root / "split.json").read_text())
     assert split == {"train": ["seq_000", "seq_001"], "test": ["seq_002"]}
-    body = synthetic.get_body("synth-arm")
+    body = bodies.get_body("synth-arm")
     meta = json.loads((root / "meta.json").read_text())
     assert meta["name"] == "synth-arm" and meta["complete"] is True
     assert meta["joint_names"] == body.joint_names and meta["parents"] == body.parents
@@ -180,14 +181,14 @@ def test_generate_writes_the_layout(tmp_path):
         limits = np.array([d["limits"] for d in meta["dofs"]], dtype=np.float32)
         assert np.all(angles >= limits[:, 0]) and np.all(angles <= limits[:, 1])
         assert np.isfinite(vertices).all()
-    assert synthetic.is_complete(root)
+    assert layout.is_complete(root)
     assert not list(root.rglob("*.tmp"))
 
 
 def test_split_is_nine_to_one_with_at_least_one_test_sequence():
-    assert [len(v) for v in synthetic.split_names(2).values()] == [1, 1]
-    assert [len(v) for v in synthetic.split_names(30).values()] == [27, 3]
-    assert [len(v) for v in synthetic.split_names(40).values()] == [36, 4]
+    assert [len(v) for v in layout.split_names(2).values()] == [1, 1]
+    assert [len(v) for v in layout.split_names(30).values()] == [27, 3]
+    assert [len(v) for v in layout.split_names(40).values()] == [36, 4]
 
 
 def test_generate_is_deterministic(tmp_path):
@@ -212,9 +213,9 @@ def test_regeneration_removes_stale_sequences(tmp_path):
 
 def test_interrupted_generation_is_not_complete(tmp_path, monkeypatch):
     root = synthetic.generate("synth-quadruped", tmp_path / "q", seed=1, **TINY)
-    assert synthetic.is_complete(root)
+    assert layout.is_complete(root)
     calls = []
-    real_save = io.save_npy
+    real_save = atomic.save_npy
 
     def save_then_interrupt(path, array):
         calls.append(path)
@@ -222,25 +223,25 @@ def test_interrupted_generation_is_not_complete(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         real_save(path, array)
 
-    monkeypatch.setattr(io, "save_npy", save_then_interrupt)
+    monkeypatch.setattr(atomic, "save_npy", save_then_interrupt)
     with pytest.raises(KeyboardInterrupt):
         synthetic.generate("synth-quadruped", root, seed=2, **TINY)
-    assert not synthetic.is_complete(root)
+    assert not layout.is_complete(root)
     assert not (root / "meta.json").exists()
-    monkeypatch.setattr(io, "save_npy", real_save)
+    monkeypatch.setattr(atomic, "save_npy", real_save)
     synthetic.generate("synth-quadruped", root, seed=2, **TINY)
-    assert synthetic.is_complete(root)
+    assert layout.is_complete(root)
     assert files_of(root) == files_of(
         synthetic.generate("synth-quadruped", tmp_path / "fresh", seed=2, **TINY)
     )
 
 
 def test_is_complete_rejects_missing_or_unfinished_meta(tmp_path):
-    assert not synthetic.is_complete(tmp_path)
+    assert not layout.is_complete(tmp_path)
     (tmp_path / "meta.json").write_text('{"name": "synth-hand", "complete": false}')
-    assert not synthetic.is_complete(tmp_path)
+    assert not layout.is_complete(tmp_path)
     (tmp_path / "meta.json").write_text('{"name": "synth-ha')
-    assert not synthetic.is_complete(tmp_path)
+    assert not layout.is_complete(tmp_path)
 
 
 def test_bad_arguments_name_the_problem(tmp_path):
@@ -251,4 +252,36 @@ def test_bad_arguments_name_the_problem(tmp_path):
     with pytest.raises(ValueError, match="frames"):
         synthetic.generate("synth-hand", tmp_path, frames=1)
     with pytest.raises(ValueError, match=r"\(T, 23\)"):
-        synthetic.pose(synthetic.get_body("synth-hand"), np.zeros((2, 3)), np.zeros((2, 3)))
+        synthetic.pose(bodies.get_body("synth-hand"), np.zeros((2, 3)), np.zeros((2, 3)))
+
+
+def test_ensure_dataset_generates_only_a_set_that_is_missing_or_unfinished(tmp_path):
+    root = tmp_path / "arm"
+    with pytest.raises(
+        FileNotFoundError, match=f"nmjax prepare-data --data synth-arm --root {root}"
+    ):
+        load_sequences("synth-arm", "train", root)
+    assert not root.exists()  # loading never writes
+    assert synthetic.ensure_dataset("synth-arm", root, seed=3, **TINY) == root
+    assert layout.is_complete(root)
+    assert [s.name for s in load_sequences("synth-arm", "train", root)] == ["seq_000"]
+    finished = files_of(root)
+    synthetic.ensure_dataset("synth-arm", root, seed=4, **TINY)  # finished: left as it is
+    assert files_of(root) == finished
+
+    (root / "meta.json").unlink()  # as an interrupted generation leaves it
+    with pytest.raises(FileNotFoundError, match="--overwrite") as err:
+        load_sequences("synth-arm", "test", root)
+    assert "complete" in str(err.value)
+    synthetic.ensure_dataset("synth-arm", root, seed=3, **TINY)
+    assert files_of(root) == finished
+
+
+def test_ensure_dataset_resolves_the_default_root_and_leaves_real_sets_alone(tmp_path, monkeypatch):
+    monkeypatch.setenv("NMJAX_DATA", str(tmp_path))
+    assert synthetic.ensure_dataset("synth-hand", **TINY) == tmp_path / "synth-hand"
+    assert layout.is_complete(tmp_path / "synth-hand")
+    assert synthetic.ensure_dataset("dfaust") == tmp_path / "dfaust"
+    assert not (tmp_path / "dfaust").exists()  # real sets come from `nmjax prepare-data --from`
+    with pytest.raises(ValueError, match="valid names"):
+        synthetic.ensure_dataset("synth-snake")

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from nmjax import io, runs
+from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
 from nmjax.config import dyn_preset
@@ -57,13 +57,13 @@ def make_fake_run(path, seed: int = 0):
     offsets = rng.normal(size=(K, 3))
     offsets *= rng.uniform(0.15, 0.3, (K, 1)) / np.linalg.norm(offsets, axis=-1, keepdims=True)
     path.mkdir(parents=True)
-    io.write_json(
+    atomic.write_json(
         path / "skeleton.json",
         {"parents": list(PARENTS), "root": 0, "order": list(ORDER), "depth": 3},
     )
     for split, lengths in (("train", (30, 25, 4)), ("test", (16, 12))):
         seqs = {f"{split}{i}": smooth_motion(n, rng, offsets) for i, n in enumerate(lengths)}
-        io.save_npz(path / f"keypoints_{split}.npz", **seqs)
+        atomic.save_npz(path / f"keypoints_{split}.npz", **seqs)
     return path
 
 
@@ -85,7 +85,7 @@ def test_missing_inputs_name_the_command_to_run(tmp_path):
     assert runs.find_skel_run("synth-arm", runs_root=tmp_path) == run
     with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax extract-skeleton --run {run}")):
         runs.read_skeleton(run)
-    io.write_json(run / "skeleton.json", {"parents": [1, 0], "order": [0, 1]})
+    atomic.write_json(run / "skeleton.json", {"parents": [1, 0], "order": [0, 1]})
     with pytest.raises(ValueError, match="extract-skeleton"):
         runs.read_skeleton(run)
     # A missing export is an error naming the command, never a hidden phase-1 inference.

@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import (
     PRESETS,
     add_override_argument,
@@ -136,11 +136,11 @@ def _row(
 def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]:
     """Times the phase-1 train step of `cfg` (a SkelTrainConfig) on its real data pipeline."""
     from nmjax.data import pipeline
-    from nmjax.data.datasets import load_sequences
+    from nmjax.data.synthetic import ensure_dataset
     from nmjax.train import parallel, skel
 
     skel.check_config(cfg)
-    load_sequences(cfg.data.name, "train", cfg.data.root)  # generates a synthetic set, untimed
+    ensure_dataset(cfg.data.name, cfg.data.root)  # a synthetic set is generated here, untimed
     mesh = parallel.data_mesh()
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set skel:data.batch_size="
@@ -690,7 +690,7 @@ def format_optimisations(rows: list[dict[str, Any]]) -> str:
 
 def optimisations_main(argv: Sequence[str]) -> int:
     """experiments/bench_optimisations.py: every optimisation vs its plain form, one process."""
-    from nmjax.data.datasets import load_sequences
+    from nmjax.data.synthetic import ensure_dataset
 
     parser = argparse.ArgumentParser(
         prog="bench_optimisations.py",
@@ -716,7 +716,7 @@ def optimisations_main(argv: Sequence[str]) -> int:
                 print(format_optimisations(rows[-1:]).splitlines()[-1], flush=True)
         if "e" in wanted:
             cfg = apply_overrides(skel_preset(args.data, args.preset), args.overrides)
-            load_sequences(cfg.data.name, "train", cfg.data.root)  # generation not timed
+            ensure_dataset(cfg.data.name, cfg.data.root)  # generation not timed
             rows.append(bench_prefetch(cfg, args.prefetch_batches, max(cfg.data.prefetch, 1)))
     except (ValueError, FileNotFoundError) as err:
         print(f"bench_optimisations: {err}", file=sys.stderr)
@@ -724,6 +724,6 @@ def optimisations_main(argv: Sequence[str]) -> int:
     print()
     print(format_optimisations(rows))
     if args.out is not None:
-        io.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
         print(f"wrote {args.out}")
     return 0

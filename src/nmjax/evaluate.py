@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import io, metrics, runs, tasks
+from nmjax import atomic, metrics, runs, tasks
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
 from nmjax.train import common
@@ -578,36 +578,6 @@ def generation_tables(gen: dict) -> list[str]:
     return lines
 
 
-def plot_generation(path: Path, gen: dict, title: str = "") -> None:
-    """Each measure against the horizon, one line per method, 95% CI error bars."""
-    import matplotlib.pyplot as plt
-
-    from nmjax.viz import save_figure  # selects the Agg backend
-
-    measures = ("diversity", "set_diversity", "bone_error", "set_distance")
-    labels = ("diversity (APD per clip)", "set diversity", "bone-length error", "set distance")
-    horizons = [int(h) for h in next(iter(gen["methods"].values()))]
-    fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
-    for ax, measure, label in zip(axes, measures, labels, strict=True):
-        series = dict(gen["methods"])
-        if measure in ("set_diversity", "bone_error"):
-            series[REFERENCE] = gen["real"]
-        for method, by_n in series.items():
-            n = [int(h) for h in by_n if measure in by_n[h]]
-            means = np.array([by_n[str(h)][measure]["mean"] for h in n], np.float64)
-            ci = np.nan_to_num(np.array([by_n[str(h)][measure]["ci95"] for h in n], np.float64))
-            style = "--" if method == REFERENCE else "-"
-            ax.errorbar(n, means, yerr=ci, fmt=style, marker="o", ms=3, capsize=3, label=method)
-        ax.set_xscale("log")
-        ax.set_xticks(horizons, [str(h) for h in horizons])
-        ax.minorticks_off()
-        ax.set_xlim(min(horizons) / 1.4, max(horizons) * 1.4)
-        ax.set_xlabel("horizon N (generated frames)")
-        ax.set_title(label, fontsize=9)
-    axes[1].legend(fontsize=7)  # the panel with every method and the reference
-    save_figure(fig, path, title=title or None)
-
-
 # --- tables and plots ---------------------------------------------------------------------------
 
 
@@ -688,25 +658,6 @@ def interpolation_table(mcd: dict | None, title: str) -> list[str]:
     return lines
 
 
-def plot_mcd(path: Path, mcd: dict, title: str = "") -> None:
-    """M-CD against SR with 95% CI error bars, one line per method (Fig. 5 style)."""
-    import matplotlib.pyplot as plt
-
-    from nmjax.viz import save_figure  # selects the Agg backend
-
-    fig, ax = plt.subplots(figsize=(5.5, 3.6))
-    for method, by_rate in mcd.items():
-        rates = [int(r) for r in by_rate]
-        means = np.array([by_rate[str(r)]["mean"] for r in rates])
-        ci = np.nan_to_num(np.array([by_rate[str(r)]["ci95"] for r in rates]))
-        ax.errorbar(rates, means, yerr=ci, marker="o", ms=3, capsize=3, label=method)
-    ax.set_xlabel("sampling rate SR (frames between keyframes)")
-    ax.set_ylabel("M-CD x1e3")
-    ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 # --- the command ---------------------------------------------------------------------------------
 
 
@@ -764,9 +715,13 @@ def evaluate_generation_run(
         **gen,
     }
     out = Path(out) if out is not None else run / "eval"
-    io.write_json(out / "generation.json", results)
-    io.write_text(out / "generation.md", generation_markdown(results))
-    plot_generation(out / "generation.png", results, title=f"{run.name}: generation")
+    atomic.write_json(out / "generation.json", results)
+    atomic.write_text(out / "generation.md", generation_markdown(results))
+    from nmjax import viz  # matplotlib only where a picture is drawn
+
+    viz.plot_generation(
+        out / "generation.png", results, reference=REFERENCE, title=f"{run.name}: generation"
+    )
     return results
 
 
@@ -836,8 +791,10 @@ def evaluate_run(
             "mcd_scale": MCD_SCALE,
         }
     out = Path(out) if out is not None else run / "eval"
-    io.write_json(out / "results.json", results)
-    io.write_text(out / "tables.md", markdown_tables(results))
+    atomic.write_json(out / "results.json", results)
+    atomic.write_text(out / "tables.md", markdown_tables(results))
     if "interpolation" in results:
-        plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
+        from nmjax import viz  # matplotlib only where a picture is drawn
+
+        viz.plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
     return results

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import io
+from nmjax import atomic
 from nmjax.config import DynTrainConfig, SkelTrainConfig
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
@@ -207,7 +207,7 @@ def export_keypoints(
         keypoints = keypoints.reshape(-1, *keypoints.shape[2:])  # windows joined in time
         arrays[seq.name] = keypoints[: len(voxels)].astype(np.float32)
     path = keypoints_file(run, split) if path is None else Path(path)
-    io.save_npz(path, **arrays)
+    atomic.save_npz(path, **arrays)
     return path
 
 
@@ -300,7 +300,7 @@ def extract_run_skeleton(
     Returns:
       The `Skeleton` written to `<run>/skeleton.json`.
     """
-    from nmjax.skeleton_cli import draw_skeleton
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     run = Path(run)
     n_neighbors = DEFAULT_NEIGHBORS if n_neighbors is None else n_neighbors
@@ -317,7 +317,7 @@ def extract_run_skeleton(
         pruned_parents=list(pruned.parents),
         keep=keep.tolist(),
     )
-    draw_skeleton(
+    viz.draw_skeleton(
         run / "figures" / "skeleton.png",
         skeleton,
         stats["example_keypoints"],

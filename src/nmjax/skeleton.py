@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.sparse import csgraph
 
-from nmjax import io
+from nmjax import atomic
 
 NO_PATH = 1e4  # Algorithm 1: hop distance written for "no path" between two keypoints
 PRUNE_THRESHOLD = 0.2  # keypoints with mean intensity alpha below this are pruned (paper figures)
@@ -66,7 +66,7 @@ class Skeleton:
         payload = self.to_json()
         for key, value in extras.items():
             payload[key] = np.asarray(value).tolist() if isinstance(value, np.ndarray) else value
-        io.write_json(path, payload)
+        atomic.write_json(path, payload)
 
 
 def skeleton_from_parents(parents: Any, order: Any = None) -> Skeleton:

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import geometry, io, runs
+from nmjax import atomic, geometry, runs
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common
 
@@ -447,7 +447,7 @@ def run_generate(
     occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
     samples).
     """
-    from nmjax.tasks_cli import write_motion_pictures
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
@@ -464,7 +464,7 @@ def run_generate(
         num_samples=samples,
     )
     keypoints = np.asarray(keypoints)
-    io.save_npz(
+    atomic.save_npz(
         out / "generate.npz",
         keypoints=keypoints,
         observed=observed,
@@ -483,13 +483,13 @@ def run_generate(
             [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
         )
         decoded = [detector.decode(keypoints[:, s], first) for s in range(samples)]
-        io.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
+        atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
         held = real_frames[i] < cond + gen  # the sequence ends before the horizon
         labels = [f"observed (held from {real_frames[i]})" if held else "observed"]
         labels += [f"sample {s}" for s in range(samples)]
-        write_motion_pictures(out / name, motions, labels, model.parents)
+        viz.write_motion_pictures(out / name, motions, labels, model.parents)
     return out
 
 
@@ -511,7 +511,7 @@ def run_interpolate(
     Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names, parents) and per input a
     GIF and PNG strip with one panel per method and the truth.
     """
-    from nmjax.tasks_cli import write_motion_pictures
+    from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "interpolate"
@@ -521,7 +521,7 @@ def run_interpolate(
     methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
     key = jax.random.key(seed)
     results = {m: interp.run(m, truth[:, 0], truth[:, -1], gap, key) for m in methods}
-    io.save_npz(
+    atomic.save_npz(
         out / "interpolate.npz",
         truth=truth,
         names=np.array(names),
@@ -530,7 +530,7 @@ def run_interpolate(
     )
     for i, name in enumerate(names):
         motions = [truth[i]] + [results[m][i] for m in methods]
-        write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
+        viz.write_motion_pictures(out / name, motions, ["truth", *methods], model.parents)
     return out
 
 
@@ -552,7 +552,7 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     """A triangle mesh as Wavefront .obj text, atomically."""
     lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
     lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    io.write_text(path, "\n".join(lines) + "\n")
+    atomic.write_text(path, "\n".join(lines) + "\n")
 
 
 def run_retarget(
@@ -579,8 +579,8 @@ def run_retarget(
     Returns:
       the output folder.
     """
+    from nmjax import viz  # matplotlib only where a picture is drawn
     from nmjax.skeleton import skin_weights
-    from nmjax.tasks_cli import write_motion_pictures
 
     mesh = load_mesh(target)
     model, cfg, skel_run = runs.load_phase2(run)
@@ -631,7 +631,7 @@ def run_retarget(
         write_obj(out / f"frame_{t:04d}.obj", verts, faces)
     joints_mesh = (np.asarray(joints) + 1.0) / scale + bmin
     src_mu = np.asarray(x_src[0])
-    io.save_npz(
+    atomic.save_npz(
         out / "retarget.npz",
         source_keypoints=src_mu,
         target_keypoints=target_kp,
@@ -643,7 +643,7 @@ def run_retarget(
     # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
     sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)
     tri_centres = np.asarray(moved)[:, faces[sub]].mean(axis=2)  # (T, P, 3) a surface sketch
-    write_motion_pictures(
+    viz.write_motion_pictures(
         out / "retarget",
         [src_mu, np.asarray(joints)],
         [f"source {name}", f"retargeted {Path(target).name}"],

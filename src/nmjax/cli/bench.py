@@ -54,12 +54,12 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
 
 
 def bench(argv: list[str]) -> int:
+    from nmjax import atomic
     from nmjax import bench as bench_lib
-    from nmjax import io
 
     args = parse_args(argv)
     result = bench_lib.run(args)
     if args.out is not None:
-        io.write_json(args.out, result)
+        atomic.write_json(args.out, result)
         print(f"wrote {args.out}")
     return 0

@@ -39,7 +39,7 @@ def prepare_data(argv: list[str]) -> int:
         "--overwrite", action="store_true", help="replace a dataset already prepared at --root"
     )
     args = p.parse_args(argv)
-    root = prepare.prepare_dataset(
+    root = prepare_dataset(
         args.data,
         source=args.source,
         root=args.root,
@@ -50,13 +50,81 @@ def prepare_data(argv: list[str]) -> int:
         overwrite=args.overwrite,
     )
     if root is None:
-        from nmjax.data.datasets import dataset_root
+        from nmjax.data.layout import dataset_root
 
         where = dataset_root(args.data, args.root)
         print(f"{where} already holds a prepared {args.data!r}; pass --overwrite to replace it")
         return 0
     print(f"wrote {args.data} to {root}")
     return 0
+
+
+def prepare_dataset(
+    name: str,
+    *,
+    source: Path | None = None,
+    root: Path | None = None,
+    seed: int = 0,
+    sequences: int | None = None,
+    frames: int | None = None,
+    points: int | None = None,
+    overwrite: bool = False,
+) -> Path | None:
+    """Writes dataset `name` into `root` (default data/<name>): generated for a synthetic name,
+    converted from the raw mesh sequences in `source` for a real one.
+
+    The one place that picks the writer by name: `nmjax.data.prepare` converts real sets and
+    `nmjax.data.synthetic` generates the others, and neither imports the other.
+
+    Returns:
+      The dataset folder, or None when `root` already holds a prepared `name` and not
+      `overwrite` (nothing is changed then).
+
+    Raises:
+      ValueError: an unknown name, counts below their minimum, or `source` given for a synthetic
+        set / missing for a real one.
+    """
+    from nmjax.config import dataset_spec
+    from nmjax.data import prepare
+    from nmjax.data.layout import SYNTHETIC_DATASETS, dataset_root
+
+    dataset_spec(name)
+    points = prepare.DEFAULT_POINTS if points is None else points
+    for flag, value, least in (("sequences", sequences, 1), ("frames", frames, 2)):
+        if value is not None and value < least:
+            raise ValueError(f"--{flag} must be >= {least}, got {value}")
+    if points < 1:
+        raise ValueError(f"--points must be >= 1, got {points}")
+    synthetic_data = name in SYNTHETIC_DATASETS
+    if synthetic_data and source is not None:
+        raise ValueError(f"{name} is generated; --from is only for real datasets")
+    if not synthetic_data and source is None:
+        raise ValueError(
+            f"--data {name} needs --from DIR, the raw mesh sequences (one folder of "
+            ".obj/.ply/.off frames per sequence); or use --data synth-hand"
+        )
+    root = dataset_root(name, root)
+    if (root / "meta.json").is_file():
+        if not overwrite:
+            return None
+        prepare.clear_dataset(root)
+    if synthetic_data:
+        from nmjax.data import synthetic  # lazy: only synthetic sets need the generator
+
+        synthetic.generate(
+            name, root, num_sequences=sequences, frames=frames, points=points, seed=seed
+        )
+    else:
+        prepare.prepare_meshes(
+            name,
+            source,
+            root,
+            points=points,
+            seed=seed,
+            max_sequences=sequences,
+            max_frames=frames,
+        )
+    return root
 
 
 def synthesize(argv: list[str]) -> int:

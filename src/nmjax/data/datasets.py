@@ -1,18 +1,11 @@
-"""Dataset registry and loaders: point-cloud sequences with optional ground-truth joints.
+"""Dataset loaders: the point-cloud sequences of a split, validated, with optional joints.
 
-Prepared layout (written by `nmjax prepare-data` or by `nmjax.data.synthetic.generate`):
-
-    <root>/<split>/vertices/<seq>.npy   (T, N, 3) float32 points of one sequence
-    <root>/<split>/joints/<seq>.npy     (T, J, 3) ground-truth joints (optional;
-                                        HanCo names them <seq>_joints.npy)
-    <root>/meta.json                    optional: joint_names, parents, sample_rate, ...
-    <root>/split.json                   optional: {"train": [seq, ...], "test": [seq, ...]}
-
-`<root>` defaults to `data/<name>` relative to the working directory, or `$NMJAX_DATA/<name>`
-when the environment variable is set. When `split.json` is present its lists decide the split;
+The files are laid out as `nmjax.data.layout` describes (written by `nmjax prepare-data` or by
+`nmjax.data.synthetic.generate`). When `split.json` is present its lists decide the split;
 otherwise the `<split>/` folders do, and a dataset whose sequences all sit in `<root>/vertices/`
-(no split folders) is divided 9:1 by frame count with `split_by_frames`. Synthetic datasets
-(`synth-*`) are generated on first use.
+(no split folders) is divided 9:1 by frame count with `layout.split_by_frames`. Loading never
+writes: a synthetic set (`synth-*`) that is missing or unfinished is an error naming the command
+that generates it; `nmjax.data.synthetic.ensure_dataset` is the explicit step that does.
 
 `crop_sequence` and `sample_start` implement the sequence crop of paper Sec. B.1: a random start
 frame, T frames at the dataset's sample rate, sequences that are too short padded by repeating
@@ -22,23 +15,12 @@ their last frame.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 
-from nmjax.config import DATASETS, dataset_spec
-
-REAL_DATASETS = ("hanco", "aist", "dfaust", "animals", "panda")
-SYNTHETIC_DATASETS = tuple(name for name, spec in DATASETS.items() if spec.synthetic)
-SPLITS = ("train", "test")
-TEST_FRACTION = 0.1  # the 9:1 split
-
-# How each dataset names its ground-truth joint files inside <split>/joints/.
-JOINT_FILE_PATTERNS: dict[str, str] = {name: "{seq}.npy" for name in DATASETS}
-JOINT_FILE_PATTERNS["hanco"] = "{seq}_joints.npy"
+from nmjax.data import layout
 
 _CHECK_CHUNK = 64  # frames per chunk when scanning a (memory-mapped) file for NaN / inf
 
@@ -66,29 +48,33 @@ class Sequence:
         return int(self.vertices.shape[0])
 
 
-def dataset_root(name: str, root: str | os.PathLike | None = None) -> Path:
-    """Folder of dataset `name`: `root` if given, else `$NMJAX_DATA/<name>`, else `data/<name>`."""
-    dataset_spec(name)  # unknown names list the valid ones
-    if root is not None:
-        return Path(root)
-    base = os.environ.get("NMJAX_DATA")
-    return Path(base) / name if base else Path("data") / name
-
-
-def _missing_message(name: str, folder: Path, what: str) -> str:
-    if name in SYNTHETIC_DATASETS:
-        how = f"nmjax prepare-data --data {name} --root {folder}"
+def _missing_message(name: str, root: Path, missing: Path, what: str) -> str:
+    if name in layout.SYNTHETIC_DATASETS:
+        how = f"nmjax prepare-data --data {name} --root {root}"
+        instead = "  or call nmjax.data.synthetic.ensure_dataset first"
     else:
         how = (
-            f"nmjax prepare-data --data {name} --from DIR --root {folder}\n"
+            f"nmjax prepare-data --data {name} --from DIR --root {root}\n"
             "    (DIR: the raw mesh sequences, one folder of .obj/.ply/.off frames per sequence)"
         )
+        instead = "  or train on a built-in synthetic dataset instead: DATA=synth-hand"
     return (
-        f"dataset {name!r}: {what} {folder} not found.\n"
+        f"dataset {name!r}: {what} {missing} not found.\n"
         f"  Prepare it with: {how}\n"
-        "  or point --root / NMJAX_DATA at a prepared copy,\n"
-        "  or train on a built-in synthetic dataset instead: DATA=synth-hand"
+        f"  or point --root / NMJAX_DATA at a prepared copy,\n{instead}"
     )
+
+
+def _check_generated(name: str, root: Path) -> None:
+    """A synthetic set is only read once its generator has finished (meta.json marks it)."""
+    if not root.is_dir():
+        raise FileNotFoundError(_missing_message(name, root, root, "generated set"))
+    if not layout.is_complete(root):
+        raise FileNotFoundError(
+            f"dataset {name!r}: {root} holds no finished generated set (meta.json does not say "
+            '"complete": true; an interrupted generation?).\n'
+            f"  Generate it again with: nmjax prepare-data --data {name} --root {root} --overwrite"
+        )
 
 
 def _open_array(path: Path) -> np.ndarray:
@@ -152,68 +138,6 @@ def read_joints(path: str | os.PathLike, num_frames: int) -> np.ndarray:
     return array if array.dtype == np.float32 else np.asarray(array, dtype=np.float32)
 
 
-def split_by_frames(frame_counts: dict[str, int]) -> dict[str, list[str]]:
-    """Deterministic 9:1 train/test split of whole sequences, measured in frames.
-
-    Sequences are ordered by a hash of their name (stable across runs and machines, independent
-    of file-system order) and moved to the test split until it holds >= 10% of all frames; at
-    least one sequence stays in train. A single sequence goes to train only.
-
-    Args:
-      frame_counts: sequence name -> number of frames.
-
-    Returns:
-      {"train": sorted names, "test": sorted names}.
-    """
-    names = sorted(frame_counts, key=lambda s: hashlib.sha256(s.encode()).hexdigest())
-    total = sum(frame_counts.values())
-    test: list[str] = []
-    held = 0
-    for name in names[:-1]:
-        if held >= TEST_FRACTION * total:
-            break
-        test.append(name)
-        held += frame_counts[name]
-    held_out = set(test)
-    train = [name for name in names if name not in held_out]
-    return {"train": sorted(train), "test": sorted(test)}
-
-
-def read_split_file(path: Path) -> dict[str, list[str]]:
-    """Reads `split.json` {"train": [...], "test": [...]} with clear errors."""
-    try:
-        split = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ValueError(f"{path}: unreadable split file ({err})") from err
-    if not isinstance(split, dict) or not all(
-        isinstance(split.get(s), list) and all(isinstance(n, str) for n in split[s]) for s in SPLITS
-    ):
-        raise ValueError(f'{path}: expected {{"train": [names...], "test": [names...]}}')
-    return {s: list(split[s]) for s in SPLITS}
-
-
-def _sequence_files(root: Path) -> dict[str, tuple[Path, Path]]:
-    """seq name -> (vertices file, joints folder) over <root>/vertices and <root>/<split>/."""
-    found: dict[str, tuple[Path, Path]] = {}
-    for folder in [root, *(root / s for s in SPLITS)]:
-        for path in sorted((folder / "vertices").glob("*.npy")):
-            if path.stem in found:
-                raise ValueError(
-                    f"sequence {path.stem!r} appears twice: {found[path.stem][0]} and {path}"
-                )
-            found[path.stem] = (path, folder / "joints")
-    return found
-
-
-def _ensure_generated(name: str, root: Path) -> None:
-    folders = [root / "vertices", *(root / s / "vertices" for s in SPLITS)]
-    if (root / "meta.json").is_file() and any(f.is_dir() for f in folders):
-        return
-    from nmjax.data import synthetic  # lazy: generation needs trimesh
-
-    synthetic.generate(name, root)
-
-
 def load_sequences(
     name: str, split: str = "train", root: str | os.PathLike | None = None
 ) -> list[Sequence]:
@@ -222,31 +146,31 @@ def load_sequences(
     Args:
       name: a registered dataset (`nmjax.config.DATASETS`).
       split: "train" or "test".
-      root: dataset folder; default `dataset_root(name)`.
+      root: dataset folder; default `layout.dataset_root(name)`.
 
     Returns:
       list of validated `Sequence`s.
 
     Raises:
-      FileNotFoundError: the dataset folder (or its sequences) does not exist; the message says
-        how to prepare it.
+      FileNotFoundError: the dataset folder (or its sequences) does not exist, or a synthetic set
+        is not generated yet or unfinished; the message names the command that prepares it.
       ValueError: a bad file (named in the message), an unknown name or split, an empty split.
     """
-    if split not in SPLITS:
-        raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-    folder = dataset_root(name, root)
-    if name in SYNTHETIC_DATASETS:
-        _ensure_generated(name, folder)
+    if split not in layout.SPLITS:
+        raise ValueError(f"split must be one of {layout.SPLITS}, got {split!r}")
+    folder = layout.dataset_root(name, root)
+    if name in layout.SYNTHETIC_DATASETS:
+        _check_generated(name, folder)
     if not folder.is_dir():
-        raise FileNotFoundError(_missing_message(name, folder, "dataset folder"))
-    files = _sequence_files(folder)
+        raise FileNotFoundError(_missing_message(name, folder, folder, "dataset folder"))
+    files = layout.sequence_files(folder)
     if not files:
         raise FileNotFoundError(
-            _missing_message(name, folder / "<split>" / "vertices", "sequence folder")
+            _missing_message(name, folder, folder / "<split>" / "vertices", "sequence folder")
         )
     split_file = folder / "split.json"
     if split_file.is_file():
-        chosen = read_split_file(split_file)[split]
+        chosen = layout.read_split_file(split_file)[split]
         missing = [seq for seq in chosen if seq not in files]
         if missing:
             raise ValueError(
@@ -256,36 +180,20 @@ def load_sequences(
         chosen = sorted(p.stem for p in (folder / split / "vertices").glob("*.npy"))
     else:  # one unsplit pool: 9:1 by frame count
         counts = {seq: int(_open_array(path).shape[0]) for seq, (path, _) in files.items()}
-        chosen = split_by_frames(counts)[split]
+        chosen = layout.split_by_frames(counts)[split]
     if not chosen:
         raise ValueError(
             f"dataset {name!r} at {folder} has no {split!r} sequences; add some to "
             f"{folder / split / 'vertices'} or list them in {split_file}"
         )
-    pattern = JOINT_FILE_PATTERNS[name]
     sequences = []
     for seq in sorted(chosen):
         vertices_path, joints_folder = files[seq]
         vertices = read_vertices(vertices_path)
-        joints, joints_path = None, None
-        for candidate in dict.fromkeys([pattern.format(seq=seq), f"{seq}.npy"]):
-            if (joints_folder / candidate).is_file():
-                joints_path = joints_folder / candidate
-                joints = read_joints(joints_path, vertices.shape[0])
-                break
+        joints_path = layout.joints_file(name, joints_folder, seq)
+        joints = None if joints_path is None else read_joints(joints_path, vertices.shape[0])
         sequences.append(Sequence(seq, vertices, joints, vertices_path, joints_path))
     return sequences
-
-
-def read_meta(name: str, root: str | os.PathLike | None = None) -> dict:
-    """`<root>/meta.json` of a dataset as a dict ({} when the dataset has none)."""
-    path = dataset_root(name, root) / "meta.json"
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path}: invalid JSON ({err})") from err
 
 
 def crop_span(frames: int, sample_rate: int) -> int:

@@ -1,4 +1,4 @@
-"""Write a dataset in the nmjax layout (see `nmjax.data.datasets`); `nmjax prepare-data`.
+"""`nmjax prepare-data`: write a dataset in the nmjax layout (see `nmjax.data.layout`).
 
     nmjax prepare-data --data synth-hand [--sequences N] [--frames N] [--seed S]
     nmjax prepare-data --data dfaust --from RAW_DIR [--root DIR] [--points 20000]
@@ -21,15 +21,14 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import io
-from nmjax.config import DATASETS, dataset_spec
-from nmjax.data.datasets import (
+from nmjax.config import DATASETS
+from nmjax.data.layout import (
     JOINT_FILE_PATTERNS,
     SPLITS,
-    SYNTHETIC_DATASETS,
-    dataset_root,
     read_split_file,
     split_by_frames,
+    write_index,
+    write_sequence,
 )
 
 MESH_SUFFIXES = (".obj", ".ply", ".off")
@@ -92,28 +91,7 @@ def _read_raw_joints(path: Path, num_frames: int) -> np.ndarray:
     return joints.astype(np.float32)
 
 
-def write_sequence(
-    root: Path, split: str, seq: str, *, joint_file: str = "{seq}.npy", **arrays: np.ndarray | None
-) -> None:
-    """Writes one sequence into the prepared layout, atomically, in the order the arrays are given.
-
-    Every array `kind=array` goes to `<root>/<split>/<kind>/<seq>.npy` (kinds: vertices, joints,
-    angles, ...); joints go to `<root>/<split>/joints/<joint_file>` with `{seq}` filled in (the
-    dataset's `JOINT_FILE_PATTERNS` entry). Arrays given as None are skipped.
-    """
-    for kind, array in arrays.items():
-        if array is not None:
-            file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
-            io.save_npy(root / split / kind / file, array)
-
-
-def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:
-    """Writes `<root>/split.json`, then `<root>/meta.json`: meta last marks the set complete."""
-    io.write_json(root / "split.json", split)
-    io.write_json(root / "meta.json", meta)
-
-
-def _clear(root: Path) -> None:
+def clear_dataset(root: Path) -> None:
     """Removes a previous dataset's files (only the nmjax layout, nothing else) from `root`."""
     for split in SPLITS:
         for sub in ("vertices", "joints"):
@@ -187,64 +165,4 @@ def prepare_meshes(
         frames={seq: len(frames[seq]) for seq in names},
     )
     write_index(root, split, meta)
-    return root
-
-
-def prepare_dataset(
-    name: str,
-    *,
-    source: Path | None = None,
-    root: Path | None = None,
-    seed: int = 0,
-    sequences: int | None = None,
-    frames: int | None = None,
-    points: int = DEFAULT_POINTS,
-    overwrite: bool = False,
-) -> Path | None:
-    """Writes dataset `name` into `root` (default data/<name>): generated for a synthetic name,
-    converted from the raw mesh sequences in `source` for a real one.
-
-    Returns:
-      The dataset folder, or None when `root` already holds a prepared `name` and not
-      `overwrite` (nothing is changed then).
-
-    Raises:
-      ValueError: an unknown name, counts below their minimum, or `source` given for a synthetic
-        set / missing for a real one.
-    """
-    dataset_spec(name)
-    for flag, value, least in (("sequences", sequences, 1), ("frames", frames, 2)):
-        if value is not None and value < least:
-            raise ValueError(f"--{flag} must be >= {least}, got {value}")
-    if points < 1:
-        raise ValueError(f"--points must be >= 1, got {points}")
-    synthetic_data = name in SYNTHETIC_DATASETS
-    if synthetic_data and source is not None:
-        raise ValueError(f"{name} is generated; --from is only for real datasets")
-    if not synthetic_data and source is None:
-        raise ValueError(
-            f"--data {name} needs --from DIR, the raw mesh sequences (one folder of "
-            ".obj/.ply/.off frames per sequence); or use --data synth-hand"
-        )
-    root = dataset_root(name, root)
-    if (root / "meta.json").is_file():
-        if not overwrite:
-            return None
-        _clear(root)
-    if synthetic_data:
-        from nmjax.data import synthetic  # lazy: only synthetic sets need the generator
-
-        synthetic.generate(
-            name, root, num_sequences=sequences, frames=frames, points=points, seed=seed
-        )
-    else:
-        prepare_meshes(
-            name,
-            source,
-            root,
-            points=points,
-            seed=seed,
-            max_sequences=sequences,
-            max_frames=frames,
-        )
     return root

@@ -29,7 +29,7 @@ import orbax.checkpoint as ocp
 from flax import nnx
 from orbax.checkpoint import checkpoint_managers as ocp_policies
 
-from nmjax import io
+from nmjax import atomic
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
@@ -287,7 +287,7 @@ def prepare_run_dir(
         else:
             path.unlink()
     path.mkdir(parents=True, exist_ok=True)
-    io.write_json(path / CONFIG_FILE, config_to_dict(config))
+    atomic.write_json(path / CONFIG_FILE, config_to_dict(config))
     return path
 
 
@@ -515,7 +515,7 @@ class MetricWriter:
         """Logs `scalars` (name -> number or 0-d array) at `step`."""
         values = {k: float(v) for k, v in scalars.items()}
         self._lines.append(json.dumps({"step": int(step), **values}))
-        io.write_text(self.path, "\n".join(self._lines) + "\n")
+        atomic.write_text(self.path, "\n".join(self._lines) + "\n")
         for name, value in values.items():
             self._tb.add_scalar(name, value, int(step))
         self._tb.flush()

@@ -26,7 +26,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import io, losses
+from nmjax import losses
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics
 from nmjax.train import common, parallel
@@ -207,52 +207,6 @@ def eval_step(state, x, key, *, graphdef):
     return metrics, generated[0]
 
 
-def plot_motion(
-    path: Path,
-    observed: np.ndarray,
-    generated: np.ndarray,
-    parents: tuple[int, ...],
-    t_cond: int,
-    columns: int = 6,
-) -> None:
-    """Observed (top) and generated (bottom) skeletons, x-y projection, at `columns` frames.
-
-    Args:
-      path: PNG file, written atomically.
-      observed, generated: (T, K, 4) keypoints.
-      parents: (K,) the skeleton.
-      t_cond: frames given to the model; the frames after it are generated.
-    """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    frames = np.unique(np.linspace(0, len(observed) - 1, columns).astype(int))
-    fig, axes = plt.subplots(2, len(frames), figsize=(2.2 * len(frames), 4.6), squeeze=False)
-    both = np.concatenate([observed[..., :2], generated[..., :2]]).reshape(-1, 2)
-    lo, hi = both.min(0) - 0.1, both.max(0) + 0.1
-    for row, (label, x) in enumerate((("observed", observed), ("generated", generated))):
-        for col, t in enumerate(frames):
-            ax = axes[row, col]
-            for k, p in enumerate(parents):
-                if p != k:
-                    ax.plot(x[t, [p, k], 0], x[t, [p, k], 1], "-", color="tab:blue", lw=1.5)
-            alpha = np.clip(x[t, :, 3], 0, 1)  # intensity: dark = 0, yellow = 1
-            ax.scatter(x[t, :, 0], x[t, :, 1], s=8, c=alpha, cmap="viridis", vmin=0, vmax=1)
-            ax.set_xlim(lo[0], hi[0])
-            ax.set_ylim(lo[1], hi[1])
-            ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
-            kind = "cond" if t < t_cond else "gen"
-            ax.set_title(f"{label} t={t}" + (f" ({kind})" if row else ""), fontsize=8)
-    fig.tight_layout()
-    with io.atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=80)
-    plt.close(fig)
-
-
 # --- loop -------------------------------------------------------------------------------------
 
 
@@ -329,7 +283,9 @@ def train(
         scalars = {f"val/{k}": float(v) for k, v in metrics.items()}
         history.append({"step": step, **scalars})
         if parallel.is_primary():
-            plot_motion(
+            from nmjax import viz  # only the validating process draws
+
+            viz.plot_motion(
                 run_dir / "figures" / f"motion_{step:07d}.png",
                 np.asarray(val_x[0]),
                 np.asarray(generated),

@@ -23,7 +23,7 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import io, losses, metrics
+from nmjax import atomic, losses, metrics
 from nmjax.config import LossWeights, SkelTrainConfig
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
@@ -232,6 +232,7 @@ def train(
         checkpoint stays on disk.
     """
     from nmjax.data import pipeline
+    from nmjax.data.synthetic import ensure_dataset
 
     check_config(cfg)
     if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
@@ -241,6 +242,8 @@ def train(
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
     )
+    # A synthetic set is generated on first use here, explicitly: the loaders never write.
+    ensure_dataset(cfg.data.name, cfg.data.root)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
     run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
@@ -321,9 +324,9 @@ def write_artifacts(
     _, keypoints = validate(make_steps(graphdef, cfg, mesh)[1], cfg, mesh, state, val_batches)
     if not parallel.is_primary():
         return
-    io.save_npy(run / "affinity.npy", affinity)
+    atomic.save_npy(run / "affinity.npy", affinity)
     flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
-    io.save_npz(
+    atomic.save_npz(
         run / "keypoint_stats.npz",
         intensities=flat[:, :, 3].mean(axis=0).astype(np.float32),
         rest_positions=flat[:, :, :3].mean(axis=0).astype(np.float32),

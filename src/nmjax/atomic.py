@@ -14,7 +14,7 @@ import numpy as np
 
 
 @contextlib.contextmanager
-def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
+def writer(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
     """Opens a temporary file beside `path`; renames it onto `path` only if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -33,18 +33,18 @@ def atomic_open(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO[Any]]:
 
 def save_npy(path: str | os.PathLike, array: np.ndarray) -> None:
     """`np.save` to exactly `path` (no `.npy` appended), atomically."""
-    with atomic_open(path, "wb") as f:
+    with writer(path, "wb") as f:
         np.save(f, np.asarray(array))
 
 
 def save_npz(path: str | os.PathLike, **arrays: np.ndarray) -> None:
     """`np.savez` to exactly `path`, atomically."""
-    with atomic_open(path, "wb") as f:
+    with writer(path, "wb") as f:
         np.savez(f, **arrays)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
-    with atomic_open(path, "w") as f:
+    with writer(path, "w") as f:
         f.write(text)
 
 

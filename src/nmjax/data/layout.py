@@ -1,0 +1,184 @@
+"""The on-disk format of a dataset, both directions: where it lives, its splits, its file names.
+
+    <root>/<split>/vertices/<seq>.npy   (T, N, 3) float32 points of one sequence
+    <root>/<split>/joints/<seq>.npy     (T, J, 3) ground-truth joints (optional; HanCo names them
+                                        <seq>_joints.npy, see `JOINT_FILE_PATTERNS`)
+    <root>/<split>/<kind>/<seq>.npy     further per-frame arrays (the synthetic sets: angles)
+    <root>/split.json                   optional: {"train": [seq, ...], "test": [seq, ...]}
+    <root>/meta.json                    optional: joint_names, parents, sample_rate, ...;
+                                        written last, so that it marks a finished set
+
+A set may also keep all its sequences in `<root>/vertices/` (and `<root>/joints/`) without split
+folders; `split_by_frames` then divides them 9:1. `<root>` defaults to `data/<name>` relative to
+the working directory, or `$NMJAX_DATA/<name>` when the environment variable is set.
+
+The readers (`nmjax.data.datasets`) and the writers (`nmjax.data.prepare`, the synthetic
+generator `nmjax.data.synthetic`) all go through this module, so they cannot disagree.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from nmjax import atomic
+from nmjax.config import DATASETS, dataset_spec
+
+SPLITS = ("train", "test")
+TEST_FRACTION = 0.1  # the 9:1 split
+SYNTHETIC_DATASETS = tuple(name for name, spec in DATASETS.items() if spec.synthetic)
+
+# How each dataset names its ground-truth joint files inside <split>/joints/.
+JOINT_FILE_PATTERNS: dict[str, str] = {name: "{seq}.npy" for name in DATASETS}
+JOINT_FILE_PATTERNS["hanco"] = "{seq}_joints.npy"
+
+# The sequence names `split_names` gives; a generator may delete such files it did not write.
+GENERATED_NAME = re.compile(r"seq_\d+")
+
+
+def dataset_root(name: str, root: str | os.PathLike | None = None) -> Path:
+    """Folder of dataset `name`: `root` if given, else `$NMJAX_DATA/<name>`, else `data/<name>`.
+
+    Raises:
+      ValueError: `name` is not a registered dataset (the message lists the valid ones).
+    """
+    dataset_spec(name)
+    if root is not None:
+        return Path(root)
+    base = os.environ.get("NMJAX_DATA")
+    return Path(base) / name if base else Path("data") / name
+
+
+# --- splits -------------------------------------------------------------------------------------
+
+
+def split_by_frames(frame_counts: dict[str, int]) -> dict[str, list[str]]:
+    """Deterministic 9:1 train/test split of whole sequences, measured in frames.
+
+    Sequences are ordered by a hash of their name (stable across runs and machines, independent
+    of file-system order) and moved to the test split until it holds >= 10% of all frames; at
+    least one sequence stays in train. A single sequence goes to train only.
+
+    Args:
+      frame_counts: sequence name -> number of frames.
+
+    Returns:
+      {"train": sorted names, "test": sorted names}.
+    """
+    names = sorted(frame_counts, key=lambda s: hashlib.sha256(s.encode()).hexdigest())
+    total = sum(frame_counts.values())
+    test: list[str] = []
+    held = 0
+    for name in names[:-1]:
+        if held >= TEST_FRACTION * total:
+            break
+        test.append(name)
+        held += frame_counts[name]
+    held_out = set(test)
+    train = [name for name in names if name not in held_out]
+    return {"train": sorted(train), "test": sorted(test)}
+
+
+def split_names(num_sequences: int) -> dict[str, list[str]]:
+    """Names of a generated set per split: seq_000, seq_001, ...; the last max(1, round(n / 10))
+    are the test split."""
+    if num_sequences < 2:
+        raise ValueError(
+            f"num_sequences must be at least 2 (one train, one test), got {num_sequences}"
+        )
+    names = [f"seq_{i:03d}" for i in range(num_sequences)]
+    num_test = max(1, round(num_sequences / 10))
+    return {"train": names[:-num_test], "test": names[-num_test:]}
+
+
+def read_split_file(path: Path) -> dict[str, list[str]]:
+    """Reads `split.json` {"train": [...], "test": [...]} with clear errors."""
+    try:
+        split = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: unreadable split file ({err})") from err
+    if not isinstance(split, dict) or not all(
+        isinstance(split.get(s), list) and all(isinstance(n, str) for n in split[s]) for s in SPLITS
+    ):
+        raise ValueError(f'{path}: expected {{"train": [names...], "test": [names...]}}')
+    return {s: list(split[s]) for s in SPLITS}
+
+
+# --- reading --------------------------------------------------------------------------------------
+
+
+def sequence_files(root: Path) -> dict[str, tuple[Path, Path]]:
+    """seq name -> (vertices file, joints folder) over <root>/vertices and <root>/<split>/.
+
+    Raises:
+      ValueError: a sequence name appears in two folders.
+    """
+    found: dict[str, tuple[Path, Path]] = {}
+    for folder in [root, *(root / s for s in SPLITS)]:
+        for path in sorted((folder / "vertices").glob("*.npy")):
+            if path.stem in found:
+                raise ValueError(
+                    f"sequence {path.stem!r} appears twice: {found[path.stem][0]} and {path}"
+                )
+            found[path.stem] = (path, folder / "joints")
+    return found
+
+
+def joints_file(name: str, joints_folder: Path, seq: str) -> Path | None:
+    """The joints file of sequence `seq` of dataset `name` in `joints_folder`, or None.
+
+    The dataset's own pattern (`JOINT_FILE_PATTERNS`) is tried first, then plain `<seq>.npy`.
+    """
+    for candidate in dict.fromkeys([JOINT_FILE_PATTERNS[name].format(seq=seq), f"{seq}.npy"]):
+        if (joints_folder / candidate).is_file():
+            return joints_folder / candidate
+    return None
+
+
+def read_meta(name: str, root: str | os.PathLike | None = None) -> dict:
+    """`<root>/meta.json` of a dataset as a dict ({} when the dataset has none)."""
+    path = dataset_root(name, root) / "meta.json"
+    if not path.is_file():
+        return {}
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: invalid JSON ({err})") from err
+
+
+def is_complete(root: str | os.PathLike) -> bool:
+    """True when `root` holds a finished generated set: meta.json says "complete": true."""
+    try:
+        meta = json.loads((Path(root) / "meta.json").read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return False
+    return isinstance(meta, dict) and meta.get("complete") is True
+
+
+# --- writing --------------------------------------------------------------------------------------
+
+
+def write_sequence(
+    root: Path, split: str, seq: str, *, joint_file: str = "{seq}.npy", **arrays: np.ndarray | None
+) -> None:
+    """Writes one sequence into the layout, atomically, in the order the arrays are given.
+
+    Every array `kind=array` goes to `<root>/<split>/<kind>/<seq>.npy` (kinds: vertices, joints,
+    angles, ...); joints go to `<root>/<split>/joints/<joint_file>` with `{seq}` filled in (the
+    dataset's `JOINT_FILE_PATTERNS` entry). Arrays given as None are skipped.
+    """
+    for kind, array in arrays.items():
+        if array is not None:
+            file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
+            atomic.save_npy(root / split / kind / file, array)
+
+
+def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:
+    """Writes `<root>/split.json`, then `<root>/meta.json`: meta last marks the set complete."""
+    atomic.write_json(root / "split.json", split)
+    atomic.write_json(root / "meta.json", meta)

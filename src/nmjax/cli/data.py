@@ -129,9 +129,10 @@ def prepare_dataset(
 
 def synthesize(argv: list[str]) -> int:
     from nmjax.data import synthetic
+    from nmjax.data.bodies import BODIES
 
     p = parser("synthesize", "Generate one synthetic set and time it.")
-    p.add_argument("name", choices=sorted(synthetic.BODIES))
+    p.add_argument("name", choices=sorted(BODIES))
     p.add_argument("--root", type=Path, help="output folder (default data/NAME)")
     p.add_argument("--num-sequences", type=int)
     p.add_argument("--frames", type=int)

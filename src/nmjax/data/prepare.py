@@ -135,7 +135,8 @@ def prepare_meshes(
         split = split_by_frames({seq: len(frames[seq]) for seq in names})
     pattern = JOINT_FILE_PATTERNS[name]
     total = sum(len(f) for f in frames.values())
-    with tqdm(total=total, unit="frame", desc=f"prepare {name}") as bar:
+    # disable=None: no bar when stderr is not a terminal (logs, tests), so errors stay one line
+    with tqdm(total=total, unit="frame", desc=f"prepare {name}", disable=None) as bar:
         for split_name in SPLITS:
             for seq in split[split_name]:
                 paths = frames[seq]

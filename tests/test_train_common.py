@@ -72,7 +72,9 @@ def test_prepare_run_dir(tmp_path):
     with pytest.raises(ValueError, match="--resume"):
         common.prepare_run_dir(run, resume=False, config=cfg)
     assert (run / "keep.txt").exists()
-    common.prepare_run_dir(run, resume=True, config=cfg)
+    # resuming needs a complete checkpoint; refused before anything in the folder changes
+    with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
+        common.prepare_run_dir(run, resume=True, config=cfg)
     assert (run / "keep.txt").exists()
     common.prepare_run_dir(run, resume=False, config=cfg, overwrite=True)
     assert not (run / "keep.txt").exists()

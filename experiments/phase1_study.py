@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import fcntl
 import json
 import os
 import shlex
@@ -68,6 +69,10 @@ VARIANTS: dict[str, Variant] = {
     "c32": Variant(
         "detector width C = 32 (hourglass 32/48/64)",
         ("model.channels=32", "model.hourglass_channels=(32,48,64)"),
+    ),
+    "aug": Variant(
+        "training crops turned about the up axis (+-180 deg) and shrunk by up to 25%",
+        ("data.rotate_degrees=180.0", "data.scale_jitter=0.25"),
     ),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
@@ -250,15 +255,21 @@ def main() -> int:
     parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
     parser.add_argument("--report", action="store_true", help="only rewrite the table")
     args = parser.parse_args()
-    path = RESULTS / "phase1_study.json"
-    rows = json.loads(path.read_text()) if path.is_file() else []
+    row = None
     if not args.report:
         row = run_variant(
             args.data, args.variant, args.minutes, args.seed, args.max_crops, args.steps
         )
-        rows = [r for r in rows if row_key(r) != row_key(row)] + [row]
         print(json.dumps(row, indent=1))
-    write_report(rows)
+    # Runs side by side finish at about the same time: the table is read and rewritten under a
+    # lock, after the run, so that no row is lost.
+    path = RESULTS / "phase1_study.json"
+    with open(RESULTS / ".phase1_study.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        rows = json.loads(path.read_text()) if path.is_file() else []
+        if row is not None:
+            rows = [r for r in rows if row_key(r) != row_key(row)] + [row]
+        write_report(rows)
     return 0
 
 

@@ -152,3 +152,67 @@ def test_worker_process_gives_the_same_batches(data):
         assert all(same(x, next(iterator)) for x in expected)
     finally:
         iterator.close()
+
+
+def test_augment_crop_is_a_rigid_turn_and_a_shrink():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(4, 30, 3)) * [1.0, 2.0, 0.5]
+    joints = rng.normal(size=(4, 5, 3))
+    aug = pipeline.Augmentation(rotate_degrees=90.0, scale_jitter=0.3, up_axis=2)
+    out, out_joints = pipeline.augment_crop(points, joints, np.random.default_rng(7), aug)
+    assert out.dtype == np.float32 and np.all(out >= -1.0) and np.all(out < 1.0)
+    # Distances shrink by one factor s in [0.7, 1] (the normalisation's and the jitter's scale
+    # together), heights keep their order, and the joints went through the same map.
+    before = np.concatenate([points, joints], axis=1)
+    after = np.concatenate([out, out_joints], axis=1).astype(np.float64)
+    d0 = np.linalg.norm(before[:, :, None] - before[:, None], axis=-1)
+    d1 = np.linalg.norm(after[:, :, None] - after[:, None], axis=-1)
+    ratio = d1[d0 > 0] / d0[d0 > 0]
+    np.testing.assert_allclose(ratio, ratio[0], rtol=1e-4)
+    np.testing.assert_allclose(
+        np.argsort(after[..., 2].ravel()), np.argsort(before[..., 2].ravel())
+    )
+    # Not the plain normalisation: the crop was turned (the xy-extents changed).
+    plain, _ = normalize_sequence(points, joints)
+    assert not np.allclose(plain, out, atol=1e-3)
+
+
+def test_augment_crop_draws_cover_the_ranges():
+    points = np.random.default_rng(0).normal(size=(2, 50, 3))
+    aug = pipeline.Augmentation(rotate_degrees=30.0, scale_jitter=0.2, up_axis=0)
+    angles, scales = [], []
+    for seed in range(200):
+        out, _ = pipeline.augment_crop(points, None, np.random.default_rng(seed), aug)
+        scales.append((out.max(axis=(0, 1)) - out.min(axis=(0, 1))).max() / 2.0)
+        # x (the up axis here) is untouched by the turn: its extent is the longest side's share.
+        centred = out - out.reshape(-1, 3).mean(axis=0)
+        ref = points - points.reshape(-1, 3).mean(axis=0)
+        a = np.arctan2(centred[..., 2], centred[..., 1]) - np.arctan2(ref[..., 2], ref[..., 1])
+        angles.append(np.rad2deg(np.angle(np.exp(1j * a)).mean()))
+    scales, angles = np.array(scales), np.array(angles)
+    assert 0.8 - 1e-4 <= scales.min() < 0.82 and 0.98 < scales.max() <= 1.0
+    assert -30.5 < angles.min() < -25 and 25 < angles.max() < 30.5
+
+
+def test_augmentation_only_for_training_crops(data):
+    aug = DataConfig(**{**data.__dict__, "rotate_degrees": 180.0, "scale_jitter": 0.5})
+    train_plain, train_aug = next(pipeline.skel_batches(data)), next(pipeline.skel_batches(aug))
+    assert not np.array_equal(train_plain["voxels"], train_aug["voxels"])
+    # The draws come after the crop's start: the same sequences and frames, turned.
+    assert train_aug["joints"].shape == train_plain["joints"].shape
+    plain_eval, aug_eval = (
+        pipeline.eval_batches(data, "test", 2),
+        pipeline.eval_batches(aug, "test", 2),
+    )
+    assert all(same(a, b) for a, b in zip(plain_eval, aug_eval, strict=True))
+    # Deterministic for the seed, like the plain stream.
+    assert same(next(pipeline.skel_batches(aug)), train_aug)
+
+
+@pytest.mark.parametrize(
+    "field, value", [("rotate_degrees", 200.0), ("scale_jitter", 1.0), ("up_axis", 3)]
+)
+def test_bad_augmentation_is_named(data, field, value):
+    bad = DataConfig(**{**data.__dict__, field: value})
+    with pytest.raises(ValueError, match=f"data.{field}"):
+        next(pipeline.skel_batches(bad))

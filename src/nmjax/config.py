@@ -108,6 +108,14 @@ class DataConfig:
     seed: int = 0
     worker_count: int = 0  # grain worker processes; 0 = load in the main process
     prefetch: int = 2  # batches prepared ahead of the device
+    # Training-crop augmentation (off in the paper's recipe; experiments/phase1_study.py measures
+    # it): each crop rotated about the up axis by an angle uniform in +-rotate_degrees before
+    # normalisation, then shrunk by a factor uniform in [1 - scale_jitter, 1] towards the
+    # normalised box's minimum corner, so it stays inside the grid. Validation and test crops
+    # are never augmented.
+    rotate_degrees: float = 0.0
+    scale_jitter: float = 0.0
+    up_axis: int = 2  # 0/1/2 = x/y/z; the synthetic bodies have z up
 
 
 @dataclass(frozen=True)

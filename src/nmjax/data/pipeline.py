@@ -40,12 +40,72 @@ from nmjax.data.datasets import (
 from nmjax.data.voxelize import normalize_sequence, voxelize
 
 __all__ = [
+    "Augmentation",
     "CropVoxelizer",
+    "augment_crop",
     "crop_sequence",
     "eval_batches",
     "skel_batches",
     "skel_iterator",
 ]
+
+
+@dataclasses.dataclass(frozen=True)
+class Augmentation:
+    """Random rotation about the up axis (+-`rotate_degrees`) and shrink (by up to
+    `scale_jitter`) of a training crop; see `DataConfig.rotate_degrees`."""
+
+    rotate_degrees: float = 0.0
+    scale_jitter: float = 0.0
+    up_axis: int = 2
+
+    def __post_init__(self):
+        if not 0.0 <= self.rotate_degrees <= 180.0:
+            raise ValueError(f"data.rotate_degrees must be in [0, 180], got {self.rotate_degrees}")
+        if not 0.0 <= self.scale_jitter < 1.0:
+            raise ValueError(f"data.scale_jitter must be in [0, 1), got {self.scale_jitter}")
+        if self.up_axis not in (0, 1, 2):
+            raise ValueError(f"data.up_axis must be 0, 1 or 2 (x, y, z), got {self.up_axis}")
+
+    @classmethod
+    def from_config(cls, cfg: DataConfig) -> Augmentation | None:
+        """The augmentation of `cfg`'s training crops, None when it is off."""
+        aug = cls(cfg.rotate_degrees, cfg.scale_jitter, cfg.up_axis)
+        return aug if aug.rotate_degrees > 0 or aug.scale_jitter > 0 else None
+
+
+def augment_crop(
+    points: np.ndarray, joints: np.ndarray | None, rng: np.random.Generator, aug: Augmentation
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """One random draw of `aug` applied to a crop, normalised to [-1, 1)^3 as `normalize_sequence`
+    does; the same rotation and scale for every frame, so the motion itself is unchanged.
+
+    Args:
+      points: (T, N, 3) raw points of the crop.
+      joints: optional (T, J, 3) ground-truth joints; they follow the points.
+      rng: the crop's generator; two draws (angle, scale).
+      aug: the ranges.
+
+    Returns:
+      (points', joints') float32, inside [-1, 1)^3: rotated about `aug.up_axis` through the
+      crop's mean point, normalised, then p' = -1 + s (p' + 1) with s ~ U[1 - scale_jitter, 1].
+    """
+    angle = np.deg2rad(rng.uniform(-aug.rotate_degrees, aug.rotate_degrees))
+    scale = rng.uniform(1.0 - aug.scale_jitter, 1.0)
+    a, b = [axis for axis in range(3) if axis != aug.up_axis]
+    rot = np.eye(3)
+    rot[a, a] = rot[b, b] = np.cos(angle)
+    rot[a, b], rot[b, a] = -np.sin(angle), np.sin(angle)
+    centre = np.asarray(points, dtype=np.float64).reshape(-1, 3).mean(axis=0)
+
+    def turn(x):
+        return None if x is None else (np.asarray(x, dtype=np.float64) - centre) @ rot.T + centre
+
+    points, joints = normalize_sequence(turn(points), turn(joints))
+    points = (scale * (points + 1.0) - 1.0).astype(np.float32)
+    if joints is not None:
+        joints = (scale * (joints + 1.0) - 1.0).astype(np.float32)
+    return points, joints
 
 
 class CropVoxelizer:
@@ -55,13 +115,21 @@ class CropVoxelizer:
     dataset is never copied into the workers.
     """
 
-    def __init__(self, sequences: list[Sequence], frames: int, sample_rate: int, grid: int):
+    def __init__(
+        self,
+        sequences: list[Sequence],
+        frames: int,
+        sample_rate: int,
+        grid: int,
+        augmentation: Augmentation | None = None,
+    ):
         if frames < 1 or sample_rate < 1 or grid < 1:
             raise ValueError(
                 f"DataConfig.frames, .sample_rate and .grid must be >= 1, got {frames}, "
                 f"{sample_rate}, {grid}"
             )
         self.frames, self.sample_rate, self.grid = frames, sample_rate, grid
+        self.augmentation = augmentation
         joint_counts = {None if s.joints is None else s.joints.shape[1] for s in sequences}
         # Joints are batched only when every sequence has the same number of them.
         self.with_joints = None not in joint_counts and len(joint_counts) == 1
@@ -82,13 +150,19 @@ class CropVoxelizer:
             ]
         return self._arrays[index]
 
-    def crop(self, index: int, start: int) -> dict[str, np.ndarray]:
-        """The crop of sequence `index` starting at frame `start`, normalised and voxelised."""
+    def crop(
+        self, index: int, start: int, rng: np.random.Generator | None = None
+    ) -> dict[str, np.ndarray]:
+        """The crop of sequence `index` starting at frame `start`, normalised and voxelised;
+        augmented with draws from `rng` when this voxelizer has an augmentation."""
         vertices, joints = self._sequence(index)
         idx = crop_indices(self.num_frames[index], self.frames, self.sample_rate, start)
         points = np.asarray(vertices[idx], dtype=np.float32)
         crop_joints = np.asarray(joints[idx], dtype=np.float32) if self.with_joints else None
-        points, crop_joints = normalize_sequence(points, crop_joints)
+        if self.augmentation is not None and rng is not None:
+            points, crop_joints = augment_crop(points, crop_joints, rng, self.augmentation)
+        else:
+            points, crop_joints = normalize_sequence(points, crop_joints)
         element = {"voxels": voxelize(points, self.grid)}
         if crop_joints is not None:
             element["joints"] = crop_joints
@@ -97,13 +171,18 @@ class CropVoxelizer:
     def __call__(self, index: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
         index = int(index)
         start = sample_start(rng, self.num_frames[index], self.frames, self.sample_rate)
-        return self.crop(index, start)
+        return self.crop(index, start, rng)
 
 
 def _dataset(
-    sequences: list[Sequence], cfg: DataConfig, seed: int, shard: tuple[int, int] = (0, 1)
+    sequences: list[Sequence],
+    cfg: DataConfig,
+    seed: int,
+    shard: tuple[int, int] = (0, 1),
+    augment: bool = False,
 ) -> grain.IterDataset:
-    crop = CropVoxelizer(sequences, cfg.frames, cfg.sample_rate, cfg.grid)
+    augmentation = Augmentation.from_config(cfg) if augment else None
+    crop = CropVoxelizer(sequences, cfg.frames, cfg.sample_rate, cfg.grid, augmentation)
     ds = grain.MapDataset.range(len(sequences)).seed(seed).shuffle().repeat()
     ds = ds.random_map(crop)
     index, count = shard
@@ -157,7 +236,11 @@ def skel_iterator(
         raise ValueError(f"process_index {process_index} is not in 0..{process_count - 1}")
     sequences = load_sequences(cfg.name, split, cfg.root)
     ds = _dataset(
-        sequences, cfg, cfg.seed if seed is None else seed, (process_index, process_count)
+        sequences,
+        cfg,
+        cfg.seed if seed is None else seed,
+        (process_index, process_count),
+        augment=split == "train",
     )
     return iter(ds)
 

@@ -110,3 +110,18 @@ def test_gradients_finite():
     assert np.all(np.isfinite(grad(heat)))
     g0 = grad(jnp.zeros_like(heat))  # all-zero heatmaps: the eps guards keep it finite
     assert np.all(np.isfinite(g0))
+
+
+def test_heatmap_far_mass_counts_the_mass_beyond_the_radius():
+    g, k = 6, 2
+    heat = np.zeros((1, g, g, g, k), np.float32)
+    heat[0, 2, 2, 2, 0] = 5.0  # keypoint 0: the peak, one neighbour (1 cell), a far cell (3 cells)
+    heat[0, 2, 2, 3, 0] = 2.0
+    heat[0, 2, 5, 2, 0] = 3.0
+    heat[0, 1, 1, 1, 1] = 1.0  # keypoint 1: one cell, nothing far
+    far = np.asarray(kpm.heatmap_far_mass(jnp.asarray(heat), radius=1.5))
+    assert far.shape == (1, k)
+    np.testing.assert_allclose(far[0], [3.0 / 10.0, 0.0], rtol=1e-5)
+    # A uniform heatmap peaks at its first cell, a corner: 7 cells lie within 1.5 of it.
+    uniform = np.asarray(kpm.heatmap_far_mass(jnp.ones((g, g, g, 1)), radius=1.5))
+    np.testing.assert_allclose(uniform, [1.0 - 7.0 / 216.0], rtol=1e-5)

@@ -97,6 +97,13 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, mo
     records = common.read_metrics(tmp_path / "resumed")
     train_steps = [r["step"] for r in records if "train/loss" in r]
     assert train_steps == [1, 2, 3, 4, 5, 6]
+    # The fusion weights ride with the training scalars (they start at cfg.model.fuse_init and
+    # move with the steps), the heatmaps' far mass with the validation ones.
+    w_frame, w_st, b = cfg.model.fuse_init
+    first_log = next(r for r in records if "train/loss" in r)
+    assert first_log["train/fuse_w_st"] != w_st or first_log["train/fuse_b"] != b
+    assert abs(first_log["train/fuse_w_frame"] - w_frame) < 0.1
+    assert 0.0 < straight["val/heat_far_mass"] < 1.0
 
     run = tmp_path / "straight"
     k, n, g = cfg.model.num_keypoints, cfg.model.num_affinity, cfg.model.grid

@@ -78,6 +78,28 @@ def heatmap_to_keypoints(heatmaps: Array) -> Array:
     return jnp.stack([*mus, alpha], axis=-1)
 
 
+def heatmap_far_mass(heatmaps: Array, radius: float = 1.5) -> Array:
+    """Share of each heatmap's mass farther than `radius` cells from its peak (a diagnostic of
+    the softplus floor that pulls mu of Eq. 6 towards the grid centre; issue 15).
+
+    Args:
+        heatmaps: (..., g, g, g, K) non-negative heatmaps.
+        radius: distance from the peak cell, in cells.
+
+    Returns:
+        (..., K) in [0, 1]: sum of the cells with |cell - peak| > radius / total mass.
+    """
+    if heatmaps.ndim < 4:
+        raise ValueError(f"heatmap_far_mass: expected (..., g, g, g, K), got {heatmaps.shape}")
+    g = heatmaps.shape[-2]
+    flat = jnp.moveaxis(heatmaps, -1, -4).reshape(*heatmaps.shape[:-4], heatmaps.shape[-1], -1)
+    peak = jnp.stack(jnp.unravel_index(jnp.argmax(flat, axis=-1), (g, g, g)), axis=-1)
+    cells = jnp.stack(jnp.meshgrid(*[jnp.arange(g)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    dist2 = jnp.sum((cells - peak[..., None, :]) ** 2, axis=-1)  # (..., K, g^3)
+    far = jnp.sum(jnp.where(dist2 > radius**2, flat, 0.0), axis=-1)
+    return far / (jnp.sum(flat, axis=-1) + _EPS)
+
+
 def gaussian_maps(keypoints: Array, sigma: float, n: int) -> Array:
     """Renders keypoints as isotropic gaussian maps on an n^3 grid (paper Eq. 7, DESIGN §6).
 

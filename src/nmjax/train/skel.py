@@ -19,11 +19,13 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import nnx
 
 from nmjax import atomic, losses, metrics
+from nmjax import keypoints as kp_lib
 from nmjax.config import LossWeights, SkelTrainConfig
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
@@ -100,15 +102,23 @@ def train_step(state, batch, *, graphdef, settings: StepSettings, mesh):
       mesh: the data mesh (static, `parallel.data_mesh`).
 
     Returns:
-      (new state, metrics: loss, grad_norm and the unweighted terms), replicated.
+      (new state, metrics: loss, grad_norm, the unweighted terms and the fusion weights),
+      replicated.
     """
     batch = parallel.constrain_batch(batch, mesh)
     model = nnx.merge(graphdef, state["model"])
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (loss, terms), grads = grad_fn(model, batch, settings.weights)
     state = common.apply_gradients(model, grads, state["opt"], settings.optimizer)
-    scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms}
+    scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms, **fusion(model)}
     return parallel.constrain_replicated((state, scalars), mesh)
+
+
+def fusion(model: KeypointDetector) -> dict[str, jax.Array]:
+    """The heatmap fusion z = w_frame h + w_st h_st + b (`DetectorConfig.fuse_init`), logged so
+    that a run shows whether the spatio-temporal branch ever contributes (w_st leaving 0)."""
+    kernel, bias = model.fuse.kernel[...], model.fuse.bias[...]
+    return {"fuse_w_frame": kernel[0, 0], "fuse_w_st": kernel[1, 0], "fuse_b": bias[0]}
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "settings", "mesh"))
@@ -118,6 +128,8 @@ def eval_step(state, batch, *, graphdef, settings: StepSettings, mesh):
     model = nnx.merge(graphdef, state["model"])
     out = model(batch["voxels"])
     loss, terms = losses.skeleton_loss({**batch, **out}, settings.weights)
+    # The median share of a heatmap's mass beyond 1.5 cells of its peak (the softplus floor).
+    terms["heat_far_mass"] = jnp.median(kp_lib.heatmap_far_mass(out["heatmaps"]))
     return parallel.constrain_replicated(({"loss": loss, **terms}, out["keypoints"]), mesh)
 
 

@@ -74,6 +74,10 @@ VARIANTS: dict[str, Variant] = {
         "training crops turned about the up axis (+-180 deg) and shrunk by up to 25%",
         ("data.rotate_degrees=180.0", "data.scale_jitter=0.25"),
     ),
+    "temp0.5": Variant(
+        "keypoints from heatmap^2 (model.keypoint_temperature = 0.5)",
+        ("model.keypoint_temperature=0.5",),
+    ),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),

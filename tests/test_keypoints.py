@@ -125,3 +125,32 @@ def test_heatmap_far_mass_counts_the_mass_beyond_the_radius():
     # A uniform heatmap peaks at its first cell, a corner: 7 cells lie within 1.5 of it.
     uniform = np.asarray(kpm.heatmap_far_mass(jnp.ones((g, g, g, 1)), radius=1.5))
     np.testing.assert_allclose(uniform, [1.0 - 7.0 / 216.0], rtol=1e-5)
+
+
+def test_keypoint_temperature_is_a_spatial_softmax_of_the_log_heatmap():
+    rng = np.random.default_rng(0)
+    g, k, tau = 5, 3, 0.5
+    z = rng.normal(size=(2, g, g, g, k)) * 2.0
+    kp = np.asarray(kpm.heatmap_to_keypoints(jnp.asarray(np.exp(z), jnp.float32), tau))
+    p = np.exp(z / tau)
+    p /= p.sum(axis=(1, 2, 3), keepdims=True)
+    grid = np.asarray(kpm.coord_grid(g), np.float64)  # (g, g, g, 3)
+    want = np.einsum("bxyzk,xyzd->bkd", p, grid)
+    np.testing.assert_allclose(kp[..., :3], want, atol=1e-4)
+    # alpha does not depend on the temperature.
+    plain = np.asarray(kpm.heatmap_to_keypoints(jnp.asarray(np.exp(z), jnp.float32)))
+    np.testing.assert_allclose(kp[..., 3], plain[..., 3], rtol=1e-6)
+
+
+def test_low_temperature_pulls_mu_from_the_floor_to_the_peak():
+    g = 8
+    heat = np.full((g, g, g, 1), 0.05, np.float32)  # a softplus-like floor everywhere ...
+    heat[1, 1, 1, 0] = 1.0  # ... and a peak in a corner
+    peak = np.asarray(kpm.coord_grid(g))[1, 1, 1]
+    far = [
+        np.linalg.norm(np.asarray(kpm.heatmap_to_keypoints(jnp.asarray(heat), t))[0, :3] - peak)
+        for t in (1.0, 0.5, 0.25)
+    ]
+    assert far[0] > 0.5 and far[0] > far[1] > far[2] and far[2] < 0.05
+    with pytest.raises(ValueError, match="temperature"):
+        kpm.heatmap_to_keypoints(jnp.asarray(heat), 0.0)

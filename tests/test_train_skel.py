@@ -210,6 +210,8 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
         ("model.num_keypoints=1", "num_keypoints"),
         ("model.grid=18", "multiple of 4"),
         ("data.frames=2", "frames"),
+        ("model.keypoint_temperature=0", "keypoint_temperature"),
+        ("data.rotate_degrees=270", "rotate_degrees"),
         ("data.grid=8", "data.grid"),
         ("model.nonsense=3", "no field 'nonsense'"),
         ("steps", "FIELD=VALUE"),

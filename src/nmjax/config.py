@@ -159,6 +159,9 @@ class DetectorConfig:
     # moved b by a few units. w_st = 0 lets the frame branch learn to localise first: started
     # equal, the wider spatio-temporal branch wins and every keypoint stays still over time.
     fuse_init: tuple[float, float, float] = (1.0, 0.0, -4.0)
+    # Keypoint positions mu from heatmap^(1 / keypoint_temperature) (`keypoints.
+    # heatmap_to_keypoints`); 1 is the paper's expectation under the softplus heatmap itself.
+    keypoint_temperature: float = 1.0
     # Precision of the 3D convolutions ("float32" | "bfloat16": inputs and kernels cast, results
     # back to float32); parameters, GroupNorm, heatmaps, keypoints and losses stay float32.
     compute_dtype: str = "float32"

@@ -50,7 +50,7 @@ def add_coord_channels(x: Array) -> Array:
     return jnp.concatenate([x, grid], axis=-1)
 
 
-def heatmap_to_keypoints(heatmaps: Array) -> Array:
+def heatmap_to_keypoints(heatmaps: Array, temperature: float = 1.0) -> Array:
     """Keypoints from non-negative heatmaps (paper Eq. 6 -> x = (mu, alpha), DESIGN §6).
 
     alpha_k = mean of heatmap k over the grid, divided by (max over K of those means + 1e-6).
@@ -59,15 +59,25 @@ def heatmap_to_keypoints(heatmaps: Array) -> Array:
 
     Args:
         heatmaps: (..., g, g, g, K) non-negative (softplus) heatmaps.
+        temperature: mu is taken under heatmap^(1 / temperature) (alpha is not): 1 is the
+            paper; below 1 sharpens the heatmap around its peak and thins the softplus floor
+            (for softplus in its exponential regime, h = e^z, it is a spatial softmax of z at
+            that temperature). Static.
 
     Returns:
         (..., K, 4) keypoints: xyz then alpha in [0, 1].
     """
     if heatmaps.ndim < 4:
         raise ValueError(f"heatmap_to_keypoints: expected (..., g, g, g, K), got {heatmaps.shape}")
+    if not temperature > 0:
+        raise ValueError(f"heatmap_to_keypoints: temperature must be > 0, got {temperature}")
     g = heatmaps.shape[-2]
     mean = jnp.mean(heatmaps, axis=(-4, -3, -2))  # (..., K)
     alpha = mean / (jnp.max(mean, axis=-1, keepdims=True) + _EPS)
+    if temperature != 1.0:
+        # Scaled by the peak first, so that a large power neither overflows nor underflows.
+        peak = jnp.max(heatmaps, axis=(-4, -3, -2), keepdims=True)
+        heatmaps = (heatmaps / (peak + _EPS)) ** (1.0 / temperature)
     coords = axis_coords(g)
     mus = []
     for axis in (-4, -3, -2):  # x, y, z: three fixed axes, not a loop over data

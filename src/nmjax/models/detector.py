@@ -47,6 +47,10 @@ def check_detector_config(cfg: DetectorConfig) -> None:
         raise ValueError(f"model.num_affinity (N) must be >= 1, got {cfg.num_affinity}")
     if cfg.sigma_g <= 0:
         raise ValueError(f"model.sigma_g must be positive, got {cfg.sigma_g}")
+    if not cfg.keypoint_temperature > 0:
+        raise ValueError(
+            f"model.keypoint_temperature must be positive, got {cfg.keypoint_temperature}"
+        )
     check_compute_dtype(cfg.compute_dtype)
 
 
@@ -151,7 +155,7 @@ class KeypointDetector(nnx.Module):
         st_heat = jnp.broadcast_to(st_heat[:, None], heat.shape)
         stacked = jnp.stack([heat, st_heat], axis=-1)  # (B, T, g, g, g, K, 2)
         heatmaps = jax.nn.softplus(self.fuse(stacked)[..., 0])
-        keypoints = kp_lib.heatmap_to_keypoints(heatmaps)
+        keypoints = kp_lib.heatmap_to_keypoints(heatmaps, self.cfg.keypoint_temperature)
         return heatmaps, keypoints, feats.reshape(b, t, *feats.shape[1:])
 
     def decode(self, keypoints: jax.Array, first_features: jax.Array, first_voxels: jax.Array):

@@ -138,6 +138,30 @@ def localisation(detector: Detector, max_crops: int) -> dict[str, float]:
     }
 
 
+def run_extras(run: Path, detector: Detector) -> dict[str, float | None]:
+    """What the run says about the heatmaps: the fusion weights of the evaluated detector
+    (does the spatio-temporal branch's w_st leave its initial 0?) and the last validation
+    median share of a heatmap's mass beyond 1.5 cells of its peak (logged since a15e98f)."""
+    from flax import nnx
+
+    from nmjax.train import common, skel
+
+    model = nnx.merge(detector.graphdef, detector.state)
+    extras = {f"{k}_final": float(v) for k, v in skel.fusion(model).items()}
+    far = [r["val/heat_far_mass"] for r in common.read_metrics(run) if "val/heat_far_mass" in r]
+    extras["heat_far_mass_last"] = far[-1] if far else None
+    return extras
+
+
+def add_run_extras(rows: list[dict]) -> list[dict]:
+    """`run_extras` for the rows that lack them and whose run folder is still here."""
+    for row in rows:
+        run = Path(row["run"])
+        if "fuse_w_st_final" not in row and (run / "config.json").is_file():
+            row.update(run_extras(run, standard_test_detector(run, row["data"])))
+    return rows
+
+
 def run_variant(
     data: str, name: str, minutes: float, seed: int, max_crops: int, steps: int | None = None
 ) -> dict:
@@ -179,6 +203,7 @@ def run_variant(
         "bone_length_variation": results["bone_length_variation"]["mean"],
         "kept_nodes": results["bone_length_variation"]["kept_nodes"],
         **results["localisation"],
+        **run_extras(run, detector),
         "num_keypoints": len(skeleton["parents"]),
         "run": str(run),
     }
@@ -218,13 +243,15 @@ def write_report(rows: list[dict]) -> None:
         "mean of each bone's length over a crop, mean over bones and crops; nodes: kept / K; "
         "joint d: mean distance from a joint to its nearest keypoint (the cube is [-1, 1]^3); "
         "distinct: keypoints that are the most frequent nearest one of some joint (bunched "
-        "keypoints score a high SC with few distinct ones). "
+        "keypoints score a high SC with few distinct ones); w_st: the spatio-temporal "
+        "heatmap's fusion weight in the evaluated detector (initialised at 0); far mass: the "
+        "last validation's median share of a heatmap's mass beyond 1.5 cells of its peak. "
         "load: the 1-minute load average when the row was written (2 cores; above 2 the run "
         "shared them).",
         "",
         "| body | variant | change | seed | budget | steps | wall min | SC | SC fixed | CD "
-        "| bone var | nodes | joint d | distinct | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| bone var | nodes | joint d | distinct | w_st | far mass | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
@@ -233,7 +260,8 @@ def write_report(rows: list[dict]) -> None:
             f"{r['wall_minutes']:.1f} | {fmt(r['sc'])} | {fmt(r['sc_fixed_nodes'])} | "
             f"{fmt(r['tracking_cd'], 1)} | {fmt(r['bone_length_variation'])} | "
             f"{r['kept_nodes']}/{r['num_keypoints']} | {fmt(r['joint_distance'])} | "
-            f"{r['distinct_nearest']} | {r['load_average']:.1f} |"
+            f"{r['distinct_nearest']} | {fmt(r.get('fuse_w_st_final'), 2)} | "
+            f"{fmt(r.get('heat_far_mass_last'), 2)} | {r['load_average']:.1f} |"
         )
     lines += ["", "## Commands", ""]
     lines += [
@@ -258,6 +286,11 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
     parser.add_argument("--report", action="store_true", help="only rewrite the table")
+    parser.add_argument(
+        "--add-extras",
+        action="store_true",
+        help="with --report: add the fusion weights and far mass to rows whose run is here",
+    )
     args = parser.parse_args()
     row = None
     if not args.report:
@@ -271,6 +304,8 @@ def main() -> int:
     with open(RESULTS / ".phase1_study.lock", "w") as lock:
         fcntl.flock(lock, fcntl.LOCK_EX)
         rows = json.loads(path.read_text()) if path.is_file() else []
+        if args.add_extras:
+            rows = add_run_extras(rows)
         if row is not None:
             rows = [r for r in rows if row_key(r) != row_key(row)] + [row]
         write_report(rows)

@@ -78,6 +78,14 @@ VARIANTS: dict[str, Variant] = {
         "keypoints from heatmap^2 (model.keypoint_temperature = 0.5)",
         ("model.keypoint_temperature=0.5",),
     ),
+    # Combinations of the levers that helped one at a time.
+    "data10x_aug": Variant(
+        "data10x + aug", ("data.rotate_degrees=180.0", "data.scale_jitter=0.25"), sequences=300
+    ),
+    "data10x_temp0.5": Variant(
+        "data10x + temp0.5", ("model.keypoint_temperature=0.5",), sequences=300
+    ),
+    "data10x_vol10": Variant("data10x + vol10", ("weights.vol=10.0",), sequences=300),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),

@@ -267,6 +267,20 @@ def test_one_device_refuses_nothing_and_mesh_has_the_data_axis():
         parallel.check_batch_size(0, "batch_size", mesh)
 
 
+def test_the_one_batch_check_names_the_field_and_the_nearest_batch_that_splits():
+    from nmjax.config import check_batch_split
+
+    check_batch_split(6, 3, "batch_size", "3 devices")
+    with pytest.raises(ValueError) as refused:
+        check_batch_split(5, 3, "batch_size", "3 devices", "--batch-size ", ", or use fewer")
+    assert str(refused.value) == (
+        "batch_size = 5 is the global batch, split evenly over 3 devices, so it must be a "
+        "positive multiple of 3; set --batch-size 6 for example, or use fewer"
+    )
+    with pytest.raises(ValueError, match="set data.batch_size to 2 for example$"):
+        check_batch_split(0, 2, "data.batch_size", "2 hosts")
+
+
 def test_host_shards_of_the_pipeline_make_up_the_single_host_batch(tmp_path):
     from nmjax.data import pipeline, synthetic
 
@@ -283,7 +297,10 @@ def test_host_shards_of_the_pipeline_make_up_the_single_host_batch(tmp_path):
         # Host p holds crops p, p + 2 of the global batch: interleaved, nothing lost or repeated.
         np.testing.assert_array_equal(parts[0], whole[0::2])
         np.testing.assert_array_equal(parts[1], whole[1::2])
-    with pytest.raises(ValueError, match=r"data.batch_size = 4 .* hosts \(3\)"):
+    # The hosts refuse a batch with the devices' check (`config.check_batch_split`): the field,
+    # the share and the nearest batch that splits.
+    refusal = r"data.batch_size = 4 .* hosts \(3\).* multiple of 3; set data.batch_size to 3 for"
+    with pytest.raises(ValueError, match=refusal):
         pipeline.skel_iterator(cfg, process_index=0, process_count=3)
 
 

@@ -252,6 +252,28 @@ def test_mesh_retargeted_onto_itself_follows_the_source_motion():
     np.testing.assert_allclose(moved[0], vertices, atol=1e-5)  # frame 0 is the rest pose
 
 
+def test_retargeted_mesh_starts_as_the_given_mesh_when_the_source_starts_in_its_pose():
+    """`retarget_mesh` (what `nmjax retarget` writes): frame 0 is the input mesh itself when the
+    source's first pose is the target's; here the target is the source's first pose with every
+    bone 1.5 times longer, elsewhere in space, its inferred rotations the source's first ones."""
+    directions, local, root, pos, _ = source_motion(4, frames=4)
+    target = np.array([0.3, -0.2, 0.1]) + root[0] + 1.5 * (pos[0] - root[0])
+    vertices = limb_mesh_points(target, np.random.default_rng(5))
+    weights = skin_weights(vertices, target, SKELETON)
+    moved, joints = tasks.retarget_mesh(
+        jnp.asarray(vertices, jnp.float32), jnp.asarray(weights), jnp.asarray(target),
+        jnp.asarray(local[0]), jnp.asarray(local), jnp.asarray(root), jnp.asarray(directions),
+        SKELETON.parents, SKELETON.order,
+    )  # fmt: skip
+    moved, joints = np.asarray(moved), np.asarray(joints)
+    np.testing.assert_allclose(moved[0], vertices, atol=1e-5)
+    np.testing.assert_allclose(joints[0], target, atol=1e-5)
+    # ... and then it moves with the source: the root by the source root's displacement.
+    assert np.abs(moved[1:] - vertices).max() > 0.01
+    r = SKELETON.root
+    np.testing.assert_allclose(joints[:, r], target[r] + root - root[0], atol=1e-5)
+
+
 def test_rest_rotations_turn_an_estimate_onto_the_bones():
     directions, _, _, pos, glob = source_motion(3)
     wrong = random_rotations(np.random.default_rng(1), (K,), 1.0)
@@ -342,7 +364,8 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     from nmjax import cli
 
     target = tmp_path / "box.obj"
-    trimesh.creation.box(extents=(0.2, 0.3, 1.0)).export(target)
+    box = trimesh.creation.box(extents=(0.2, 0.3, 1.0))
+    box.export(target)
     out = tmp_path / "re"
     argv = ["retarget", "--run", str(runs["nm"]), "--target", str(target), "--frames", "3"]
     assert cli.main([*argv, "--points", "800", "--out", str(out)]) == 0
@@ -350,6 +373,7 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     assert len(frames) == 3
     mesh = trimesh.load(frames[0], force="mesh", process=False)
     assert mesh.vertices.shape == (8, 3) and np.all(np.isfinite(mesh.vertices))
+    np.testing.assert_array_equal(mesh.faces, box.faces)  # the target's own triangles
     assert (out / "retarget.gif").is_file()
     bad = tmp_path / "bad.obj"
     bad.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

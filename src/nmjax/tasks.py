@@ -9,7 +9,8 @@
   positional VRNN baseline is `interpolate_motion` with a `Dynamics` of kind "vrnn".
 - Motion retargeting (Eqs. 24-25): source local rotations with target bone offsets
   (`retarget_joints`), skin weights (Algorithm 2, `nmjax.skeleton.skin_weights`) and linear blend
-  skinning of a target mesh (`retarget_vertices`); `load_mesh` validates a user's mesh.
+  skinning of a target mesh (`retarget_vertices`), together `retarget_mesh`; `load_mesh` validates
+  a user's mesh.
 
 The array functions are pure and jit-able; sampling is vmapped over trajectories. In every
 interpolation result the two keyframes are the given ones: the methods differ only in the frames
@@ -320,6 +321,49 @@ def retarget_vertices(
     return linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
 
 
+def retarget_mesh(
+    vertices: jax.Array,
+    weights: jax.Array,
+    target_joints: jax.Array,
+    target_rotations: jax.Array,
+    source_rotations: jax.Array,
+    source_root: jax.Array,
+    directions: jax.Array,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+) -> tuple[jax.Array, jax.Array]:
+    """The source motion on the target's bones, skinned onto the target mesh (`run_retarget`).
+
+    The target's rest rotations are the global rotations of its own inferred local rotations,
+    corrected onto its bones (`rest_rotations`). The retargeted root starts at the target's root
+    and follows the source root's displacement from its first frame; Eqs. 24-25 give the joints
+    (`retarget_joints`) and LBS the vertices (`retarget_vertices`). Frame t is the target in the
+    source's pose t, so when the source starts in the target's own pose (its first rotations
+    are the target's and reproduce the target's bones), frame 0 is the target mesh as given.
+
+    Args:
+      vertices: (V, 3) target mesh; weights: (V, K) its skin weights (Algorithm 2).
+      target_joints: (K, 3) the target's joints; target_rotations: (K, 3, 3) the local rotations
+        inferred for its pose.
+      source_rotations: (T, K, 3, 3) source local rotations; source_root: (T, 3) its root path.
+      directions: (K, 3) the offset directions d-bar_k.
+      parents, order: the skeleton (static).
+
+    Returns:
+      deformed vertices (T, V, 3) and retargeted joints (T, K, 3).
+    """
+    root = order[0]
+    _, pose = retarget_joints(
+        target_joints[root][None], target_rotations[None], directions, target_joints, parents, order
+    )
+    rest = rest_rotations(target_joints, pose[0], directions, parents)
+    path = target_joints[root] + source_root - source_root[:1]
+    joints, rotations = retarget_joints(
+        path, source_rotations, directions, target_joints, parents, order
+    )
+    return retarget_vertices(vertices, weights, target_joints, rest, joints, rotations), joints
+
+
 # --- meshes ---------------------------------------------------------------------------------
 
 
@@ -573,8 +617,9 @@ def run_retarget(
        (best of S) from the source keypoints.
     3. Eqs. 24-25 give the retargeted joints; target rest rotations are the posterior's rotations
        of the target pose, corrected onto its bones (`rest_rotations`).
-    4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS; the result
-       is mapped back to the mesh's units and written as frame_XXXX.obj plus a GIF.
+    4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS (steps 3-4
+       are `retarget_mesh`); the result is mapped back to the mesh's units and written as
+       frame_XXXX.obj plus a GIF.
 
     Returns:
       the output folder.
@@ -604,26 +649,17 @@ def run_retarget(
     tar_in = jnp.asarray(np.repeat(target_kp[None, None], 2, axis=1))
     tar_rot, _ = infer_rotations_jit(graphdef, state, tar_in, key_tar)
     parents, order, root = model.parents, model.order, model.order[0]
-    directions = model.directions[...]
-    target_mu = jnp.asarray(target_kp[:, :3])
-    _, tar_glob = retarget_joints(
-        target_mu[root][None], tar_rot[0, :1], directions, target_mu, parents, order
-    )
-    rest_rot = rest_rotations(jnp.asarray(target_kp[:, :3]), tar_glob[0], directions, parents)
-    root_path = (
-        jnp.asarray(target_kp[root, :3]) + src_rec[0, :, root, :3] - src_rec[0, :1, root, :3]
-    )
-    joints, glob = retarget_joints(
-        root_path, src_rot[0], directions, jnp.asarray(target_kp[:, :3]), parents, order
-    )
     weights = skin_weights(vertices, target_kp[:, :3], skeleton, intensities=intensities)
-    moved = retarget_vertices(
+    moved, joints = retarget_mesh(
         jnp.asarray(vertices, jnp.float32),
         jnp.asarray(weights),
         jnp.asarray(target_kp[:, :3]),
-        rest_rot,
-        joints,
-        glob,
+        tar_rot[0, 0],
+        src_rot[0],
+        src_rec[0, :, root, :3],
+        model.directions[...],
+        parents,
+        order,
     )
     moved_mesh = (np.asarray(moved, np.float64) + 1.0) / scale + bmin  # back to mesh units
     faces = np.asarray(mesh.faces)

@@ -1,7 +1,7 @@
 """What the learned model is for (paper Sec. 5, appendix A.4 and D.4; DESIGN section 9).
 
-- Motion generation: T_cond posterior steps, then prior samples to T_cond + T_gen frames, several
-  samples per input (`generate_motion`).
+- Motion generation: the T_cond observed frames (run through the posterior), then prior samples
+  to T_cond + T_gen frames, several samples per input (`generate_motion`).
 - Motion interpolation between keyframes x_ts and x_te: the posterior at x_ts, then the prior
   rolled over the gap for several trajectories, keeping the one that ends closest to x_te
   (`interpolate_motion`), next to the non-generative baselines Lerp (joint positions,
@@ -12,9 +12,10 @@
   skinning of a target mesh (`retarget_vertices`), together `retarget_mesh`; `load_mesh` validates
   a user's mesh.
 
-The array functions are pure and jit-able; sampling is vmapped over trajectories. In every
-interpolation result the two keyframes are the given ones: the methods differ only in the frames
-between them.
+The array functions are pure and jit-able; sampling is vmapped over trajectories. What was
+observed is returned as given: a generated motion starts with its conditioning frames, and in
+every interpolation result the two keyframes are the given ones (the methods differ only in the
+frames between them).
 """
 
 from __future__ import annotations
@@ -42,6 +43,10 @@ def generate_motion(
 ) -> tuple[jax.Array, jax.Array]:
     """Motion generation (Sec. 5): several futures of each conditioning sequence.
 
+    The model runs T_cond posterior steps on the observed frames, then T_gen prior steps. The
+    motion returned starts with the observed frames themselves, not their posterior
+    reconstructions: a generated motion continues what was observed.
+
     Args:
       model: trained dynamics module ("nm" or "vrnn").
       x_cond: (B, T_cond, K, 4) observed keypoints.
@@ -50,12 +55,16 @@ def generate_motion(
       num_samples: S, independent futures per input (static), drawn under `vmap`.
 
     Returns:
-      keypoints (B, S, T_cond + T_gen, K, 4) and local rotations (B, S, T_cond + T_gen, K, 3, 3)
-      (identity for "vrnn"); the first T_cond frames are posterior reconstructions.
+      keypoints (B, S, T_cond + T_gen, K, 4), the first T_cond frames equal to x_cond in every
+      sample, and local rotations (B, S, T_cond + T_gen, K, 3, 3) (identity for "vrnn"), those of
+      the first T_cond frames inferred by the posterior.
     """
     keys = jax.random.split(key, num_samples)
     kp, rot = jax.vmap(lambda k: model.generate(x_cond, num_frames, k))(keys)  # (S, B, ...)
-    return jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)
+    kp, rot = jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)  # (B, S, ...)
+    t_cond = x_cond.shape[1]
+    observed = jnp.broadcast_to(x_cond[:, None], (kp.shape[0], num_samples, *x_cond.shape[1:]))
+    return jnp.concatenate([observed.astype(kp.dtype), kp[:, :, t_cond:]], axis=2), rot
 
 
 # --- interpolation --------------------------------------------------------------------------
@@ -485,11 +494,11 @@ def run_generate(
 ) -> Path:
     """Motion generation for the first `inputs` test sequences; returns the output folder.
 
-    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), observed (I, T, K, 4) - the true
-    continuation, padded with its last frame where the sequence is shorter (long horizons) -
-    observed_frames (I,) the real frames of it, names, parents), optionally voxels.npz (decoded
-    occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
-    samples).
+    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), each sample starting with the
+    T_cond observed frames; observed (I, T, K, 4) - those and the true continuation, padded with
+    its last frame where the sequence is shorter (long horizons) - observed_frames (I,) the real
+    frames of it, names, parents), optionally voxels.npz (decoded occupancy of every sample,
+    uint8), and per input a GIF and PNG strip (observed next to the samples).
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 
-from nmjax.bench import main
+from nmjax.cli.bench import bench
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    sys.exit(bench(sys.argv[1:]))

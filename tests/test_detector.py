@@ -12,7 +12,6 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from nmjax import keypoints as kp_lib
 from nmjax.config import skel_preset
 from nmjax.models import blocks
 from nmjax.models.detector import KeypointDetector, check_detector_config
@@ -251,27 +250,6 @@ def test_frames_are_independent_except_through_temporal_mean(tiny_outputs):
     swapped = model(voxels[:, perm])
     np.testing.assert_allclose(swapped["keypoints"], out["keypoints"][:, perm], atol=1e-5)
     np.testing.assert_allclose(swapped["recon"], out["recon"][:, perm], atol=1e-5)
-
-
-def test_decoder_input_conv_equals_conv_on_concatenated_channels(tiny_outputs):
-    cfg, model, voxels, out = tiny_outputs
-    _, _, feats = model.detect(voxels)
-    g = feats.shape[2]
-    maps = kp_lib.gaussian_maps(out["keypoints"], cfg.model.sigma_g, g)
-    context = kp_lib.add_coord_channels(jnp.concatenate([feats[:, 0], maps[:, 0]], axis=-1))
-    dec = model.decoder
-    raw = dec(maps, context)
-    # Eq. 7 as written in DESIGN: the 1x1x1 conv on [g_t, c_1, g_1, coords] of every frame.
-    b, t = maps.shape[:2]
-    full = jnp.concatenate(
-        [maps, jnp.broadcast_to(context[:, None], (b, t, *context.shape[1:]))], -1
-    )
-    x = nnx.leaky_relu(dec.inp(full.reshape(b * t, *full.shape[2:])), blocks.LEAK)
-    if cfg.model.heatmap_stride == 4:
-        x = blocks.upsample_trilinear(x)
-    x = dec.up2(blocks.upsample_trilinear(dec.up1(x)))
-    expected = dec.out(x)[..., 0].reshape(raw.shape)
-    np.testing.assert_allclose(raw, expected, rtol=1e-4, atol=1e-5)
 
 
 def test_fusion_starts_as_frame_heatmap_in_exponential_regime(tiny_outputs):

@@ -11,10 +11,10 @@ import dataclasses
 
 import numpy as np
 from test_train_dyn import make_fake_run
+from tiny_configs import small_arm_data, small_skel_config
 
 from nmjax import runs
-from nmjax.config import dyn_preset, skel_preset
-from nmjax.data import synthetic
+from nmjax.config import dyn_preset
 from nmjax.train import common, skel
 
 SKEL_LOSSES = [119.85226440429688, 105.96868896484375, 97.86418914794922, 95.789794921875]
@@ -29,22 +29,8 @@ def _train_losses(run) -> list[float]:
 
 
 def test_phase1_losses_are_pinned(tmp_path):
-    root = synthetic.generate(
-        "synth-arm", tmp_path / "data", num_sequences=2, frames=8, points=2000, progress=False
-    )
-    cfg = skel_preset("synth-arm", "tiny")
-    cfg = dataclasses.replace(
-        cfg,
-        data=dataclasses.replace(cfg.data, root=str(root), grid=8, frames=3, batch_size=1),
-        model=dataclasses.replace(
-            cfg.model, grid=8, channels=4, num_keypoints=4, hourglass_channels=(4, 4, 4)
-        ),
-        steps=4,
-        log_every=1,
-        val_every=4,
-        val_batches=1,
-        ckpt_every=4,
-    )
+    root = small_arm_data(tmp_path / "data")
+    cfg = small_skel_config(root, steps=4, log_every=1, val_every=4, val_batches=1, ckpt_every=4)
     skel.train(cfg, tmp_path / "skel", progress=False, finalize=False)
     np.testing.assert_allclose(_train_losses(tmp_path / "skel"), SKEL_LOSSES, rtol=RTOL)
 

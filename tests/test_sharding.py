@@ -17,23 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_configs import small_skel_config
 
-from nmjax.config import dyn_preset, skel_preset
+from nmjax.config import dyn_preset
 
 PARENTS = (0, 0, 1, 2, 1)  # phase-2 tree: root 0, chain 0-1-2-3 and branch 1-4
 ORDER = (0, 1, 2, 3, 4)
-
-
-def _skel_cfg(root: Path, batch_size: int = 2):
-    """The `tiny` preset (B=2) made smaller still: G=8, C=4, K=4, T=3."""
-    cfg = skel_preset("synth-arm", "tiny")
-    return dataclasses.replace(
-        cfg,
-        data=dataclasses.replace(cfg.data, root=str(root), grid=8, frames=3, batch_size=batch_size),
-        model=dataclasses.replace(
-            cfg.model, grid=8, channels=4, num_keypoints=4, hourglass_channels=(4, 4, 4)
-        ),
-    )
 
 
 def _dyn_cfg(batch_size: int = 4):
@@ -89,7 +78,7 @@ def _script_skel(workdir: Path) -> dict:
     root = synthetic.generate(
         "synth-arm", workdir / "data", num_sequences=2, frames=6, points=500, progress=False
     )
-    cfg = _skel_cfg(root)
+    cfg = small_skel_config(root, batch_size=2)
     iterator = pipeline.skel_iterator(cfg.data, "train", process_index=0, process_count=1)
     batches = [next(iterator) for _ in range(2)]
     results = {}
@@ -122,7 +111,7 @@ def _script_skel(workdir: Path) -> dict:
 
     refusal = ""
     try:
-        skel.train(_skel_cfg(root, batch_size=3), workdir / "odd", progress=False)
+        skel.train(small_skel_config(root, batch_size=3), workdir / "odd", progress=False)
     except ValueError as err:
         refusal = str(err)
     return {
@@ -267,13 +256,27 @@ def test_one_device_refuses_nothing_and_mesh_has_the_data_axis():
         parallel.check_batch_size(0, "batch_size", mesh)
 
 
+def test_the_one_batch_check_names_the_field_and_the_nearest_batch_that_splits():
+    from nmjax.config import check_batch_split
+
+    check_batch_split(6, 3, "batch_size", "3 devices")
+    with pytest.raises(ValueError) as refused:
+        check_batch_split(5, 3, "batch_size", "3 devices", "--batch-size ", ", or use fewer")
+    assert str(refused.value) == (
+        "batch_size = 5 is the global batch, split evenly over 3 devices, so it must be a "
+        "positive multiple of 3; set --batch-size 6 for example, or use fewer"
+    )
+    with pytest.raises(ValueError, match="set data.batch_size to 2 for example$"):
+        check_batch_split(0, 2, "data.batch_size", "2 hosts")
+
+
 def test_host_shards_of_the_pipeline_make_up_the_single_host_batch(tmp_path):
     from nmjax.data import pipeline, synthetic
 
     root = synthetic.generate(
         "synth-arm", tmp_path / "data", num_sequences=3, frames=8, points=500, progress=False
     )
-    cfg = dataclasses.replace(_skel_cfg(root, batch_size=4).data, prefetch=0)
+    cfg = dataclasses.replace(small_skel_config(root, batch_size=4).data, prefetch=0)
     single = pipeline.skel_iterator(cfg, process_index=0, process_count=1)
     hosts = [pipeline.skel_iterator(cfg, process_index=p, process_count=2) for p in (0, 1)]
     for _ in range(2):
@@ -283,7 +286,10 @@ def test_host_shards_of_the_pipeline_make_up_the_single_host_batch(tmp_path):
         # Host p holds crops p, p + 2 of the global batch: interleaved, nothing lost or repeated.
         np.testing.assert_array_equal(parts[0], whole[0::2])
         np.testing.assert_array_equal(parts[1], whole[1::2])
-    with pytest.raises(ValueError, match=r"data.batch_size = 4 .* hosts \(3\)"):
+    # The hosts refuse a batch with the devices' check (`config.check_batch_split`): the field,
+    # the share and the nearest batch that splits.
+    refusal = r"data.batch_size = 4 .* hosts \(3\).* multiple of 3; set data.batch_size to 3 for"
+    with pytest.raises(ValueError, match=refusal):
         pipeline.skel_iterator(cfg, process_index=0, process_count=3)
 
 

@@ -5,19 +5,22 @@ from __future__ import annotations
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from nmjax import atomic, cli
+from nmjax import atomic, cli, losses
+from nmjax import keypoints as kp_lib
 from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
     Skeleton,
     algorithm1_parents,
     extract_skeleton,
     find_parents,
+    influence,
     linear_blend_skinning,
     load_skeleton,
     prune,
@@ -345,6 +348,29 @@ def test_bad_inputs_are_named():
         skeleton_from_parents([0, 2, 1])
     with pytest.raises(ValueError, match="exactly one root"):
         skeleton_from_parents([0, 1, 1])
+
+
+def test_skeleton_and_graph_losses_combine_the_affinities_with_the_one_influence():
+    """Algorithm 1 (NumPy, float64) and the graph losses (JAX) share `keypoints.influence`: the
+    skeleton's influence of a detector affinity equals the losses', and every graph loss gives
+    the same value on the skeleton's (K, K) as on the (N, K, K) stack."""
+    rng = np.random.default_rng(3)
+    affinity = kp_lib.affinity_from_params(jnp.asarray(rng.normal(size=(2, 5, 4)), jnp.float32))
+    combined = kp_lib.influence(affinity)  # the losses' (JAX) call site
+    assert isinstance(combined, jax.Array) and combined.shape == (5, 5)
+    from_skeleton = influence(np.asarray(affinity))
+    assert from_skeleton.dtype == np.float64
+    np.testing.assert_array_equal(from_skeleton, np.asarray(combined, np.float64))
+    x = jnp.asarray(rng.uniform(-1, 1, (1, 4, 5, 4)), jnp.float32)
+    for term in (losses.graph_local, losses.graph_time, losses.graph_trajectory):
+        np.testing.assert_allclose(
+            term(x, affinity), term(x, jnp.asarray(from_skeleton, jnp.float32)), rtol=1e-6
+        )
+    # NumPy in, NumPy out in the same dtype: float64 ties stay exact for Algorithm 1.
+    stack = rng.random((3, 4, 4))
+    same = kp_lib.influence(stack)
+    assert isinstance(same, np.ndarray) and same.dtype == np.float64
+    np.testing.assert_array_equal(same, np.maximum(np.maximum(stack[0], stack[1]), stack[2]))
 
 
 def test_save_and_load_round_trip(tmp_path):

@@ -139,23 +139,28 @@ def test_interpolation_keeps_the_rollout_ending_closest_to_the_end_keyframe(mode
         np.testing.assert_allclose(out[i, 1:-1], best[:-1], atol=1e-5)
 
 
-def test_generation_draws_independent_samples_per_key(model):
+def test_generation_keeps_the_observed_frames_and_draws_independent_samples_per_key(model):
     x = jnp.stack([keyframes(8), keyframes(9), keyframes(10)], axis=1)  # (2, 3, K, 4)
     key = jax.random.key(3)
     kp, rot = tasks.generate_jit(*nnx.split(model), x, key, num_frames=4, num_samples=3)
     assert kp.shape == (2, 3, 7, K, 4) and rot.shape == (2, 3, 7, K, 3, 3)
     generate = jitted(model, lambda m, x, k: m.generate(x, 4, k))
     for s, k in enumerate(jax.random.split(key, 3)):
-        one, _ = generate(x, k)
-        np.testing.assert_allclose(np.asarray(kp[:, s]), np.asarray(one), atol=1e-5)
+        # The conditioning frames are the observed ones, not the posterior's reconstruction of
+        # them (the untrained model's is far off); the rest is the model's own sample s.
+        np.testing.assert_array_equal(np.asarray(kp[:, s, :3]), np.asarray(x))
+        one, one_rot = generate(x, k)
+        assert not np.allclose(np.asarray(one[:, :3]), np.asarray(x), atol=1e-3)
+        np.testing.assert_allclose(np.asarray(kp[:, s, 3:]), np.asarray(one[:, 3:]), atol=1e-5)
+        np.testing.assert_allclose(np.asarray(rot[:, s]), np.asarray(one_rot), atol=1e-5)
     assert not np.allclose(kp[:, 0, -1], kp[:, 1, -1])
 
-    # bone lengths of the conditioning frames are kept exactly by the FK decoder
+    # bone lengths measured on the conditioning frames (Eq. 20) are kept exactly by the FK decoder
     def lengths(y):
         return np.linalg.norm(y[..., :3] - y[..., list(PARENTS), :3], axis=-1)
 
     np.testing.assert_allclose(
-        lengths(np.asarray(kp[:, 0, -1])), lengths(np.asarray(kp[:, 0, 0])), atol=1e-4
+        lengths(np.asarray(kp[:, 0, -1])), np.asarray(bone_lengths(x, PARENTS)), atol=1e-4
     )
 
 
@@ -252,6 +257,28 @@ def test_mesh_retargeted_onto_itself_follows_the_source_motion():
     np.testing.assert_allclose(moved[0], vertices, atol=1e-5)  # frame 0 is the rest pose
 
 
+def test_retargeted_mesh_starts_as_the_given_mesh_when_the_source_starts_in_its_pose():
+    """`retarget_mesh` (what `nmjax retarget` writes): frame 0 is the input mesh itself when the
+    source's first pose is the target's; here the target is the source's first pose with every
+    bone 1.5 times longer, elsewhere in space, its inferred rotations the source's first ones."""
+    directions, local, root, pos, _ = source_motion(4, frames=4)
+    target = np.array([0.3, -0.2, 0.1]) + root[0] + 1.5 * (pos[0] - root[0])
+    vertices = limb_mesh_points(target, np.random.default_rng(5))
+    weights = skin_weights(vertices, target, SKELETON)
+    moved, joints = tasks.retarget_mesh(
+        jnp.asarray(vertices, jnp.float32), jnp.asarray(weights), jnp.asarray(target),
+        jnp.asarray(local[0]), jnp.asarray(local), jnp.asarray(root), jnp.asarray(directions),
+        SKELETON.parents, SKELETON.order,
+    )  # fmt: skip
+    moved, joints = np.asarray(moved), np.asarray(joints)
+    np.testing.assert_allclose(moved[0], vertices, atol=1e-5)
+    np.testing.assert_allclose(joints[0], target, atol=1e-5)
+    # ... and then it moves with the source: the root by the source root's displacement.
+    assert np.abs(moved[1:] - vertices).max() > 0.01
+    r = SKELETON.root
+    np.testing.assert_allclose(joints[:, r], target[r] + root - root[0], atol=1e-5)
+
+
 def test_rest_rotations_turn_an_estimate_onto_the_bones():
     directions, _, _, pos, glob = source_motion(3)
     wrong = random_rotations(np.random.default_rng(1), (K,), 1.0)
@@ -315,6 +342,8 @@ def test_generate_command(runs, tmp_path):
         assert np.all(np.isfinite(z["keypoints"]))
         assert z["observed"].shape == (1, 13, K, 4) and list(z["observed_frames"]) == [12]
         np.testing.assert_array_equal(z["observed"][0, 12], z["observed"][0, 11])
+        for s in range(2):  # every sample starts with the 2 observed frames it was given
+            np.testing.assert_array_equal(z["keypoints"][:, s, :2], z["observed"][:, :2])
         name = str(z["names"][0])
     with np.load(out / "voxels.npz") as z:
         assert z["voxels"].shape == (1, 2, 13, 16, 16, 16)
@@ -342,7 +371,8 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     from nmjax import cli
 
     target = tmp_path / "box.obj"
-    trimesh.creation.box(extents=(0.2, 0.3, 1.0)).export(target)
+    box = trimesh.creation.box(extents=(0.2, 0.3, 1.0))
+    box.export(target)
     out = tmp_path / "re"
     argv = ["retarget", "--run", str(runs["nm"]), "--target", str(target), "--frames", "3"]
     assert cli.main([*argv, "--points", "800", "--out", str(out)]) == 0
@@ -350,6 +380,7 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     assert len(frames) == 3
     mesh = trimesh.load(frames[0], force="mesh", process=False)
     assert mesh.vertices.shape == (8, 3) and np.all(np.isfinite(mesh.vertices))
+    np.testing.assert_array_equal(mesh.faces, box.faces)  # the target's own triangles
     assert (out / "retarget.gif").is_file()
     bad = tmp_path / "bad.obj"
     bad.write_text("v nan 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")

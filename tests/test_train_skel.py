@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from tiny_configs import small_arm_data, small_skel_config
 
 from nmjax import config, runs
 from nmjax.cli import main as nmjax_main
@@ -23,30 +24,13 @@ from nmjax.train import common, parallel, skel
 
 @pytest.fixture(scope="module")
 def data_root(tmp_path_factory):
-    from nmjax.data import synthetic
-
-    root = tmp_path_factory.mktemp("data") / "synth-arm"
-    synthetic.generate("synth-arm", root, num_sequences=2, frames=8, points=2000, progress=False)
-    return root
+    return small_arm_data(tmp_path_factory.mktemp("data") / "synth-arm")
 
 
 def _cfg(root, **changes):
-    """An even smaller config than the `tiny` preset: G=8, C=4, K=4, T=3, B=1."""
-    cfg = skel_preset("synth-arm", "tiny")
-    cfg = dataclasses.replace(
-        cfg,
-        data=dataclasses.replace(cfg.data, root=str(root), grid=8, frames=3, batch_size=1),
-        model=dataclasses.replace(
-            cfg.model, grid=8, channels=4, num_keypoints=4, hourglass_channels=(4, 4, 4)
-        ),
-        steps=6,
-        lr_milestones=(4, 5),
-        log_every=1,
-        val_every=3,
-        val_batches=1,
-        ckpt_every=1,
-    )
-    return dataclasses.replace(cfg, **changes)
+    """`tiny_configs.small_skel_config` (G=8, C=4, K=4, T=3, B=1) for 6 steps."""
+    run = dict(steps=6, lr_milestones=(4, 5), log_every=1, val_every=3, val_batches=1, ckpt_every=1)
+    return small_skel_config(root, **(run | changes))
 
 
 def _leaves(state):

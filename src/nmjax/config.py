@@ -224,6 +224,41 @@ class DynTrainConfig:
     run: str | None = None
 
 
+def check_batch_split(
+    batch_size: int,
+    parts: int,
+    field: str,
+    over: str,
+    option: str | None = None,
+    otherwise: str = "",
+) -> None:
+    """Refuses a global batch that does not split evenly into `parts` (devices or hosts).
+
+    The one divisibility check of both trainers (`train.parallel.check_batch_size`, over the
+    devices) and of the input pipeline (over the hosts, each loading its share).
+
+    Args:
+      batch_size: the global batch size B.
+      parts: how many equal shares B is split into.
+      field: the config field B comes from, named in the message (e.g. "data.batch_size").
+      over: what B is split over, for the message (e.g. "2 devices (1 host(s))").
+      option: the command-line option that sets B, for the fix (e.g. "--batch-size "); default
+        "FIELD to ".
+      otherwise: a second fix appended to the message (e.g. ", or run on fewer devices").
+
+    Raises:
+      ValueError: B < 1 or B not a multiple of `parts`; the message suggests the nearest one.
+    """
+    if batch_size >= 1 and batch_size % parts == 0:
+        return
+    suggestion = max(round(batch_size / parts), 1) * parts
+    raise ValueError(
+        f"{field} = {batch_size} is the global batch, split evenly over {over}, so it must be a "
+        f"positive multiple of {parts}; set {option or field + ' to '}{suggestion} for "
+        f"example{otherwise}"
+    )
+
+
 PRESETS = ("default", "cpu", "tiny")
 
 

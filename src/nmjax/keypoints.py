@@ -1,5 +1,5 @@
 """Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps (DESIGN §6),
-and the affinity between keypoints from its free parameters (Eq. 12).
+and the affinity between keypoints: from its free parameters (Eq. 12), combined over N (influence).
 
 Conventions (DESIGN §4): the coordinate of an n-cell axis is `linspace(-1, 1, n)`, axes in 'ij'
 order (grid axis 0 is x); keypoints are `(..., K, 4)` with xyz in the normalised cube and the
@@ -160,3 +160,19 @@ def affinity_from_params(params: Array) -> Array:
         soft, jnp.broadcast_to(source, (*soft.shape[:-2], k, k)), axis=-1
     )
     return jnp.where(rows == cols, 0.0, gathered)
+
+
+def influence(affinity: Array) -> Array:
+    """The influence a_kk' = max_n A_n,kk' of the N decomposed affinities (DESIGN §5, §7 step 1).
+
+    The one definition behind the graph losses (Eqs. 13-16) and the skeleton extraction
+    (Algorithm 1). It takes the array's own `max`, so a JAX array stays a JAX array (jit, grad)
+    and a NumPy array stays NumPy in its dtype (float64 for Algorithm 1's exact tie-breaking).
+
+    Args:
+        affinity: (N, K, K), or an already combined (K, K), returned as it is.
+
+    Returns:
+        (K, K).
+    """
+    return affinity.max(axis=0) if affinity.ndim == 3 else affinity

@@ -18,7 +18,7 @@ from jax import Array
 # Eq. 12 lives with the keypoint maps (the detector needs it without the losses); re-exported
 # because the graph terms below are stated on its output.
 from nmjax.keypoints import affinity_from_params as affinity_from_params
-from nmjax.keypoints import coord_grid
+from nmjax.keypoints import coord_grid, influence
 
 if TYPE_CHECKING:
     from nmjax.config import LossWeights
@@ -40,11 +40,6 @@ def _pairwise_sq_dist(mu: Array) -> Array:
     """(..., K, 3) -> (..., K, K) squared Euclidean distances (exact differences, smooth)."""
     diff = mu[..., :, None, :] - mu[..., None, :, :]
     return jnp.sum(jnp.square(diff), axis=-1)
-
-
-def _influence(affinity: Array) -> Array:
-    """Eq. 12: a_kk' = max_n A_n,kk'. Accepts (N, K, K) or an already combined (K, K)."""
-    return jnp.max(affinity, axis=0) if affinity.ndim == 3 else affinity
 
 
 # --- keypoint detector (Eqs. 8-11) -------------------------------------------------------------
@@ -191,7 +186,7 @@ def graph_local(keypoints: Array, affinity: Array, intensity_weighted: bool = Fa
     Returns:
         (...) one value per frame.
     """
-    a = _influence(affinity)
+    a = influence(affinity)
     terms = a * _pairwise_sq_dist(keypoints[..., :3])
     if intensity_weighted:
         terms = terms * keypoints[..., :, 3:4]
@@ -212,7 +207,7 @@ def graph_time(keypoints: Array, affinity: Array, intensity_weighted: bool = Fal
     Returns:
         (..., T) one value per frame.
     """
-    a = _influence(affinity)
+    a = influence(affinity)
     dist = _pairwise_sq_dist(keypoints[..., :3])  # (..., T, K, K)
     terms = a * jnp.abs(dist - jnp.mean(dist, axis=-3, keepdims=True))
     if intensity_weighted:
@@ -311,7 +306,7 @@ def graph_trajectory(
         scalar.
     """
     cost = trajectory_cost(keypoints, intensity_weighted, printed_scale)
-    return jnp.mean(_influence(affinity) * cost)
+    return jnp.mean(influence(affinity) * cost)
 
 
 # --- dynamics (Eqs. 3-4) -----------------------------------------------------------------------

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from scipy.sparse import csgraph
 
-from nmjax import atomic
+from nmjax import atomic, keypoints
 
 NO_PATH = 1e4  # Algorithm 1: hop distance written for "no path" between two keypoints
 PRUNE_THRESHOLD = 0.2  # keypoints with mean intensity alpha below this are pruned (paper figures)
@@ -155,7 +155,10 @@ def load_skeleton(path: str | os.PathLike) -> Skeleton:
 
 
 def influence(affinity: Any) -> np.ndarray:
-    """Influence max_n A_n of the N learned affinities (DESIGN section 7).
+    """Influence max_n A_n of the N learned affinities (DESIGN section 7), checked, in float64.
+
+    The max is `keypoints.influence`, the graph losses' own; here the input is validated and
+    the diagonal (a keypoint's affinity to itself) zeroed.
 
     Args:
       affinity: (K, K) or (N, K, K) non-negative affinities; row i is keypoint i's preference.
@@ -173,7 +176,7 @@ def influence(affinity: Any) -> np.ndarray:
         raise ValueError(f"affinity must have shape (K, K) or (N, K, K), got {a.shape}")
     if not np.all(np.isfinite(a)) or np.any(a < 0):
         raise ValueError("affinity must be finite and non-negative (softmaxed affinities)")
-    a = a.max(axis=0)
+    a = keypoints.influence(a)
     np.fill_diagonal(a, 0.0)
     return a
 

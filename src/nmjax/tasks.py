@@ -1,7 +1,7 @@
 """What the learned model is for (paper Sec. 5, appendix A.4 and D.4; DESIGN section 9).
 
-- Motion generation: T_cond posterior steps, then prior samples to T_cond + T_gen frames, several
-  samples per input (`generate_motion`).
+- Motion generation: the T_cond observed frames (run through the posterior), then prior samples
+  to T_cond + T_gen frames, several samples per input (`generate_motion`).
 - Motion interpolation between keyframes x_ts and x_te: the posterior at x_ts, then the prior
   rolled over the gap for several trajectories, keeping the one that ends closest to x_te
   (`interpolate_motion`), next to the non-generative baselines Lerp (joint positions,
@@ -9,11 +9,13 @@
   positional VRNN baseline is `interpolate_motion` with a `Dynamics` of kind "vrnn".
 - Motion retargeting (Eqs. 24-25): source local rotations with target bone offsets
   (`retarget_joints`), skin weights (Algorithm 2, `nmjax.skeleton.skin_weights`) and linear blend
-  skinning of a target mesh (`retarget_vertices`); `load_mesh` validates a user's mesh.
+  skinning of a target mesh (`retarget_vertices`), together `retarget_mesh`; `load_mesh` validates
+  a user's mesh.
 
-The array functions are pure and jit-able; sampling is vmapped over trajectories. In every
-interpolation result the two keyframes are the given ones: the methods differ only in the frames
-between them.
+The array functions are pure and jit-able; sampling is vmapped over trajectories. What was
+observed is returned as given: a generated motion starts with its conditioning frames, and in
+every interpolation result the two keyframes are the given ones (the methods differ only in the
+frames between them).
 """
 
 from __future__ import annotations
@@ -41,6 +43,10 @@ def generate_motion(
 ) -> tuple[jax.Array, jax.Array]:
     """Motion generation (Sec. 5): several futures of each conditioning sequence.
 
+    The model runs T_cond posterior steps on the observed frames, then T_gen prior steps. The
+    motion returned starts with the observed frames themselves, not their posterior
+    reconstructions: a generated motion continues what was observed.
+
     Args:
       model: trained dynamics module ("nm" or "vrnn").
       x_cond: (B, T_cond, K, 4) observed keypoints.
@@ -49,12 +55,16 @@ def generate_motion(
       num_samples: S, independent futures per input (static), drawn under `vmap`.
 
     Returns:
-      keypoints (B, S, T_cond + T_gen, K, 4) and local rotations (B, S, T_cond + T_gen, K, 3, 3)
-      (identity for "vrnn"); the first T_cond frames are posterior reconstructions.
+      keypoints (B, S, T_cond + T_gen, K, 4), the first T_cond frames equal to x_cond in every
+      sample, and local rotations (B, S, T_cond + T_gen, K, 3, 3) (identity for "vrnn"), those of
+      the first T_cond frames inferred by the posterior.
     """
     keys = jax.random.split(key, num_samples)
     kp, rot = jax.vmap(lambda k: model.generate(x_cond, num_frames, k))(keys)  # (S, B, ...)
-    return jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)
+    kp, rot = jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)  # (B, S, ...)
+    t_cond = x_cond.shape[1]
+    observed = jnp.broadcast_to(x_cond[:, None], (kp.shape[0], num_samples, *x_cond.shape[1:]))
+    return jnp.concatenate([observed.astype(kp.dtype), kp[:, :, t_cond:]], axis=2), rot
 
 
 # --- interpolation --------------------------------------------------------------------------
@@ -320,6 +330,49 @@ def retarget_vertices(
     return linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
 
 
+def retarget_mesh(
+    vertices: jax.Array,
+    weights: jax.Array,
+    target_joints: jax.Array,
+    target_rotations: jax.Array,
+    source_rotations: jax.Array,
+    source_root: jax.Array,
+    directions: jax.Array,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+) -> tuple[jax.Array, jax.Array]:
+    """The source motion on the target's bones, skinned onto the target mesh (`run_retarget`).
+
+    The target's rest rotations are the global rotations of its own inferred local rotations,
+    corrected onto its bones (`rest_rotations`). The retargeted root starts at the target's root
+    and follows the source root's displacement from its first frame; Eqs. 24-25 give the joints
+    (`retarget_joints`) and LBS the vertices (`retarget_vertices`). Frame t is the target in the
+    source's pose t, so when the source starts in the target's own pose (its first rotations
+    are the target's and reproduce the target's bones), frame 0 is the target mesh as given.
+
+    Args:
+      vertices: (V, 3) target mesh; weights: (V, K) its skin weights (Algorithm 2).
+      target_joints: (K, 3) the target's joints; target_rotations: (K, 3, 3) the local rotations
+        inferred for its pose.
+      source_rotations: (T, K, 3, 3) source local rotations; source_root: (T, 3) its root path.
+      directions: (K, 3) the offset directions d-bar_k.
+      parents, order: the skeleton (static).
+
+    Returns:
+      deformed vertices (T, V, 3) and retargeted joints (T, K, 3).
+    """
+    root = order[0]
+    _, pose = retarget_joints(
+        target_joints[root][None], target_rotations[None], directions, target_joints, parents, order
+    )
+    rest = rest_rotations(target_joints, pose[0], directions, parents)
+    path = target_joints[root] + source_root - source_root[:1]
+    joints, rotations = retarget_joints(
+        path, source_rotations, directions, target_joints, parents, order
+    )
+    return retarget_vertices(vertices, weights, target_joints, rest, joints, rotations), joints
+
+
 # --- meshes ---------------------------------------------------------------------------------
 
 
@@ -441,11 +494,11 @@ def run_generate(
 ) -> Path:
     """Motion generation for the first `inputs` test sequences; returns the output folder.
 
-    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), observed (I, T, K, 4) - the true
-    continuation, padded with its last frame where the sequence is shorter (long horizons) -
-    observed_frames (I,) the real frames of it, names, parents), optionally voxels.npz (decoded
-    occupancy of every sample, uint8), and per input a GIF and PNG strip (observed next to the
-    samples).
+    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), each sample starting with the
+    T_cond observed frames; observed (I, T, K, 4) - those and the true continuation, padded with
+    its last frame where the sequence is shorter (long horizons) - observed_frames (I,) the real
+    frames of it, names, parents), optionally voxels.npz (decoded occupancy of every sample,
+    uint8), and per input a GIF and PNG strip (observed next to the samples).
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
@@ -573,8 +626,9 @@ def run_retarget(
        (best of S) from the source keypoints.
     3. Eqs. 24-25 give the retargeted joints; target rest rotations are the posterior's rotations
        of the target pose, corrected onto its bones (`rest_rotations`).
-    4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS; the result
-       is mapped back to the mesh's units and written as frame_XXXX.obj plus a GIF.
+    4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS (steps 3-4
+       are `retarget_mesh`); the result is mapped back to the mesh's units and written as
+       frame_XXXX.obj plus a GIF.
 
     Returns:
       the output folder.
@@ -604,26 +658,17 @@ def run_retarget(
     tar_in = jnp.asarray(np.repeat(target_kp[None, None], 2, axis=1))
     tar_rot, _ = infer_rotations_jit(graphdef, state, tar_in, key_tar)
     parents, order, root = model.parents, model.order, model.order[0]
-    directions = model.directions[...]
-    target_mu = jnp.asarray(target_kp[:, :3])
-    _, tar_glob = retarget_joints(
-        target_mu[root][None], tar_rot[0, :1], directions, target_mu, parents, order
-    )
-    rest_rot = rest_rotations(jnp.asarray(target_kp[:, :3]), tar_glob[0], directions, parents)
-    root_path = (
-        jnp.asarray(target_kp[root, :3]) + src_rec[0, :, root, :3] - src_rec[0, :1, root, :3]
-    )
-    joints, glob = retarget_joints(
-        root_path, src_rot[0], directions, jnp.asarray(target_kp[:, :3]), parents, order
-    )
     weights = skin_weights(vertices, target_kp[:, :3], skeleton, intensities=intensities)
-    moved = retarget_vertices(
+    moved, joints = retarget_mesh(
         jnp.asarray(vertices, jnp.float32),
         jnp.asarray(weights),
         jnp.asarray(target_kp[:, :3]),
-        rest_rot,
-        joints,
-        glob,
+        tar_rot[0, 0],
+        src_rot[0],
+        src_rec[0, :, root, :3],
+        model.directions[...],
+        parents,
+        order,
     )
     moved_mesh = (np.asarray(moved, np.float64) + 1.0) / scale + bmin  # back to mesh units
     faces = np.asarray(mesh.faces)

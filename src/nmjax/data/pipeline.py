@@ -29,7 +29,7 @@ import jax
 import numpy as np
 from absl import flags
 
-from nmjax.config import DataConfig
+from nmjax.config import DataConfig, check_batch_split
 from nmjax.data.datasets import (
     Sequence,
     crop_indices,
@@ -188,11 +188,8 @@ def _dataset(
     index, count = shard
     batch_size = cfg.batch_size
     if count > 1:
-        if cfg.batch_size % count:
-            raise ValueError(
-                f"data.batch_size = {cfg.batch_size} must be a multiple of the number of hosts "
-                f"({count}), each host loading data.batch_size / {count} crops per step"
-            )
+        over = f"the hosts ({count}), each loading data.batch_size / {count} crops per step"
+        check_batch_split(cfg.batch_size, count, "data.batch_size", over)
         batch_size = cfg.batch_size // count
         ds = ds[index::count]
     buffer = max(cfg.prefetch, 1) * batch_size

@@ -379,13 +379,27 @@ class FeatureNet(nnx.Module):
         self.hourglass = Hourglass(c2, hourglass_channels, grid // stride, rngs=rngs)
         self.res2 = ResBlock(c2, channels, rngs=rngs)
 
-    def __call__(self, voxels: jax.Array) -> jax.Array:
+    def stem_conv(self, voxels: jax.Array) -> jax.Array:
+        """The CoordConv stem's conv5 on [occupancy, x, y, z], with its bias (before the norm).
+
+        The occupancy is convolved per sample; the coordinate channels, the same for every
+        sample, once in closed form (`coord_conv3d_same`) and broadcast.
+
+        Args:
+          voxels: (B, G, G, G) occupancy.
+
+        Returns:
+          (B, G, G, G, C/4) float32.
+        """
         dtype = self.stem.conv.compute_dtype
         w = self.stem.conv.kernel[...]  # (5, 5, 5, 1 + 3, C/4)
         v, wv, wc = in_compute_dtype(dtype, voxels[..., None], w[..., :1, :], w[..., 1:, :])
         coords = coord_conv3d_same(wc, voxels.shape[1])  # (G, G, G, C/4), as for every sample
         x = (conv3d_same(v, wv, self.stem.conv.conv_form) + coords).astype(jnp.float32)
-        x = nnx.leaky_relu(self.stem.norm(x + self.stem.conv.bias[...]), LEAK)
+        return x + self.stem.conv.bias[...]
+
+    def __call__(self, voxels: jax.Array) -> jax.Array:
+        x = nnx.leaky_relu(self.stem.norm(self.stem_conv(voxels)), LEAK)
         x = self.res1(self.pool1(x))
         if self.pool2 is not None:
             x = self.pool2(x)

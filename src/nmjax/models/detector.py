@@ -74,23 +74,29 @@ class VoxelDecoder(nnx.Module):
         )
         self.out = Conv3D(c4, 1, 1, rngs=rngs)
 
-    def __call__(self, maps: jax.Array, context: jax.Array) -> jax.Array:
-        """Raw logits of every frame.
+    def input_features(self, maps: jax.Array, context: jax.Array) -> jax.Array:
+        """The input 1x1x1 conv + LeakyReLU on [g_t, context] of every frame.
+
+        The conv is linear: its share of the frame-independent channels (the context) is computed
+        once per crop and broadcast over time instead of concatenated to every frame.
 
         Args:
           maps: (B, T, g, g, g, K) gaussian maps g_t of each frame.
           context: (B, g, g, g, C + K + 3) [c_1, g_1, coords], the same for all frames of a crop.
 
         Returns:
-          (B, T, G, G, G) raw logits.
+          (B, T, g, g, g, C) float32.
         """
-        b, t, k = maps.shape[0], maps.shape[1], maps.shape[-1]
-        # The 1x1x1 input conv is linear: its share of the frame-independent channels is computed
-        # once per crop and broadcast over time instead of concatenated to every frame.
+        k = maps.shape[-1]
         w = self.inp.kernel[...][0, 0, 0]  # (K + C + K + 3, C), rows in input-channel order
         maps, context, w = in_compute_dtype(self.inp.compute_dtype, maps, context, w)
         shared = (context @ w[k:]).astype(jnp.float32) + self.inp.bias[...]  # (B, g, g, g, C)
-        x = nnx.leaky_relu((maps @ w[:k]).astype(jnp.float32) + shared[:, None], LEAK)
+        return nnx.leaky_relu((maps @ w[:k]).astype(jnp.float32) + shared[:, None], LEAK)
+
+    def __call__(self, maps: jax.Array, context: jax.Array) -> jax.Array:
+        """Raw logits (B, T, G, G, G) of every frame; the arguments are `input_features`'."""
+        b, t = maps.shape[:2]
+        x = self.input_features(maps, context)
         x = x.reshape(b * t, *x.shape[2:])
         x = self.up1(upsample_trilinear(x) if self.upsample_first else x)
         x = self.up2(upsample_trilinear(x))

@@ -26,6 +26,8 @@ import numpy as np
 from jax.sharding import AxisType, Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from nmjax.config import check_batch_split
+
 DATA_AXIS = "data"
 ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"
 ENV_NUM_PROCESSES = "JAX_NUM_PROCESSES"
@@ -168,14 +170,14 @@ def check_batch_size(batch_size: int, field: str, mesh: Mesh, option: str | None
       option: the command-line option that sets it, for the fix (e.g. "--batch-size ").
     """
     devices = mesh.devices.size
-    if batch_size < 1 or batch_size % devices:
-        suggestion = max(round(batch_size / devices), 1) * devices
-        raise ValueError(
-            f"{field} = {batch_size} is the global batch, split evenly over {devices} devices "
-            f"({jax.process_count()} host(s)), so it must be a positive multiple of {devices}; "
-            f"set {option or field + ' to '}{suggestion} for example, or run on fewer devices "
-            "(CUDA_VISIBLE_DEVICES)"
-        )
+    check_batch_split(
+        batch_size,
+        devices,
+        field,
+        f"{devices} devices ({jax.process_count()} host(s))",
+        option,
+        ", or run on fewer devices (CUDA_VISIBLE_DEVICES)",
+    )
 
 
 def host_batch_to_global(local: Any, mesh: Mesh) -> Any:

@@ -1,0 +1,79 @@
+"""The plain formulations of what the detector computes in an optimised form.
+
+Each function takes a real module of `nmjax.models` (its parameters) and computes what DESIGN §6
+writes down, the straightforward way, with none of the model's shortcuts. `test_plain_forms.py`
+checks the model against them in value and gradient; `experiments/bench_optimisations.py` times
+the model against them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import nnx
+
+from nmjax.keypoints import coord_grid
+from nmjax.models.blocks import LEAK, Conv3D, FeatureNet, upsample_trilinear
+from nmjax.models.detector import VoxelDecoder
+
+
+def conv3d(conv: Conv3D, x: jax.Array) -> jax.Array:
+    """A stride-1 `Conv3D` as XLA's own 3D convolution ('SAME') plus the bias.
+
+    x (B, X, Y, Z, Ci) -> (B, X, Y, Z, Co).
+    """
+    dims = ("NDHWC", "DHWIO", "NDHWC")
+    y = jax.lax.conv_general_dilated(x, conv.kernel[...], (1, 1, 1), "SAME", dimension_numbers=dims)
+    return y + conv.bias[...]
+
+
+def stem_conv(net: FeatureNet, voxels: jax.Array) -> jax.Array:
+    """CoordConv as printed: [occupancy, x, y, z] concatenated to every sample, then one 3D conv.
+
+    voxels (B, G, G, G) -> (B, G, G, G, C/4), as `net.stem_conv`.
+    """
+    coords = jnp.broadcast_to(coord_grid(voxels.shape[1]), (*voxels.shape, 3))
+    return conv3d(net.stem.conv, jnp.concatenate([voxels[..., None], coords], axis=-1))
+
+
+def feature_net(net: FeatureNet, voxels: jax.Array) -> jax.Array:
+    """f_feat with the plain stem; the blocks after it are the net's own. As `net(voxels)`."""
+    x = nnx.leaky_relu(net.stem.norm(stem_conv(net, voxels)), LEAK)
+    x = net.res1(net.pool1(x))
+    x = x if net.pool2 is None else net.pool2(x)
+    return net.res2(net.hourglass(x))
+
+
+def decoder_input(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax.Array:
+    """The decoder's input 1x1x1 conv + LeakyReLU on [g_t, context] concatenated for every frame.
+
+    maps (B, T, g, g, g, K), context (B, g, g, g, C + K + 3) -> (B, T, g, g, g, C), as
+    `dec.input_features`.
+    """
+    every_frame = jnp.broadcast_to(context[:, None], (*maps.shape[:2], *context.shape[1:]))
+    return nnx.leaky_relu(dec.inp(jnp.concatenate([maps, every_frame], axis=-1)), LEAK)
+
+
+def decoder(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax.Array:
+    """f_dec with the plain input conv; the blocks after it are the decoder's own.
+
+    Returns (B, T, G, G, G) raw logits, as `dec(maps, context)`.
+    """
+    b, t = maps.shape[:2]
+    x = decoder_input(dec, maps, context)
+    x = x.reshape(b * t, *x.shape[2:])
+    if dec.upsample_first:
+        x = upsample_trilinear(x)
+    x = dec.up2(upsample_trilinear(dec.up1(x)))
+    return dec.out(x)[..., 0].reshape(b, t, *x.shape[1:4])
+
+
+def gaussian_maps(keypoints: jax.Array, sigma: float, n: int) -> jax.Array:
+    """Eq. 7's maps alpha exp(-||x - mu||^2 / (2 (sigma / n)^2)), dense over the n^3 grid.
+
+    keypoints (..., K, 4) -> (..., n, n, n, K), as `keypoints.gaussian_maps`.
+    """
+    grid = coord_grid(n)[..., None, :]  # (n, n, n, 1, 3)
+    mu = keypoints[..., None, None, None, :, :3]  # (..., 1, 1, 1, K, 3)
+    alpha = keypoints[..., None, None, None, :, 3]
+    return alpha * jnp.exp(-jnp.sum(jnp.square(grid - mu), axis=-1) / (2 * (sigma / n) ** 2))

@@ -1,0 +1,115 @@
+"""The detector's optimised forms against the plain formulations of `plain_forms.py`.
+
+The real modules (`VoxelDecoder`, `FeatureNet`, `Conv3D`, `keypoints.gaussian_maps`) compute the
+same function as the straightforward forms, in value and in the gradient with respect to the
+parameters and every input, at tiny shapes: a change that breaks an optimisation in the model
+shows here. The whole modules are compared, so the pieces the optimisation benchmark times
+(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`) are checked inside them.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import plain_forms
+import pytest
+from flax import nnx
+
+from nmjax import keypoints as kp_lib
+from nmjax.models import blocks
+from nmjax.models.detector import VoxelDecoder
+
+RNG = np.random.default_rng(0)
+
+
+def normal(*shape: int) -> jax.Array:
+    return jnp.asarray(RNG.normal(size=shape), jnp.float32)
+
+
+def on_params(fn, module):
+    """(fn as a function of the module's state, that state): the parameters become an input."""
+    graphdef, state = nnx.split(module)
+    return (lambda state, *inputs: fn(nnx.merge(graphdef, state), *inputs)), state
+
+
+def value_and_grads(fn, *args):
+    """fn(*args) and the gradient of sum(fn(*args) * r), r a fixed random cotangent, with respect
+    to every argument."""
+
+    def scalar(*args):
+        y = fn(*args)
+        return jnp.sum(y * jax.random.normal(jax.random.key(7), y.shape)), y
+
+    grad_fn = jax.value_and_grad(scalar, argnums=tuple(range(len(args))), has_aux=True)
+    (_, y), grads = jax.jit(grad_fn)(*args)
+    return y, grads
+
+
+def assert_same_function(fast, plain, *args):
+    """`fast` and `plain` agree in value (to 1e-5 of the largest output) and in every gradient
+    leaf (to 1e-4 of its largest entry; a conv bias before a GroupNorm has a gradient of float
+    noise only, hence the floor at 1e-6 of the largest gradient of all)."""
+    y_fast, g_fast = value_and_grads(fast, *args)
+    y_plain, g_plain = value_and_grads(plain, *args)
+    assert y_fast.shape == y_plain.shape
+    np.testing.assert_allclose(y_fast, y_plain, atol=1e-5 * float(jnp.max(jnp.abs(y_plain))))
+    leaves_fast, leaves_plain = jax.tree.leaves(g_fast), jax.tree.leaves(g_plain)
+    largest = max(float(jnp.max(jnp.abs(g))) for g in leaves_plain)
+    assert largest > 0
+    for got, want in zip(leaves_fast, leaves_plain, strict=True):
+        atol = 1e-4 * float(jnp.max(jnp.abs(want))) + 1e-6 * largest
+        np.testing.assert_allclose(got, want, atol=atol)
+
+
+@pytest.mark.parametrize("stride", [4, 2])
+def test_decoder_convolves_the_context_once_per_crop_as_if_for_every_frame(stride):
+    b, t, g, k, c = 1, 2, 2, 3, 8
+    dec = VoxelDecoder(2 * k + c + 3, c, stride, rngs=nnx.Rngs(1))
+    fast, params = on_params(VoxelDecoder.__call__, dec)
+    plain, _ = on_params(plain_forms.decoder, dec)
+    maps, context = normal(b, t, g, g, g, k), normal(b, g, g, g, c + k + 3)
+    assert_same_function(fast, plain, params, maps, context)
+
+
+def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
+    net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(2))
+    voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
+    fast, params = on_params(blocks.FeatureNet.__call__, net)
+    plain, _ = on_params(plain_forms.feature_net, net)
+    assert_same_function(fast, plain, params, voxels)
+
+
+@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+def test_conv3d_in_2d_convolutions_equals_xla_3d_convolution(form):
+    conv = blocks.Conv3D(2, 3, 3, rngs=nnx.Rngs(3))
+    blocks.set_conv_form(conv, form)
+    conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
+    fast, params = on_params(blocks.Conv3D.__call__, conv)
+    plain, _ = on_params(plain_forms.conv3d, conv)
+    assert_same_function(fast, plain, params, normal(2, 5, 4, 6, 2))
+
+
+def test_separable_gaussian_maps_equal_the_dense_ones():
+    keypoints = jnp.concatenate([0.4 * normal(2, 3, 4, 3), jnp.full((2, 3, 4, 1), 0.6)], -1)
+    assert_same_function(
+        lambda x: kp_lib.gaussian_maps(x, 1.5, 5),
+        lambda x: plain_forms.gaussian_maps(x, 1.5, 5),
+        keypoints,
+    )
+
+
+def test_plain_gaussian_maps_against_numpy():
+    kp = np.array([[0.1, -0.3, 0.5, 0.7], [-0.6, 0.2, 0.0, 1.0]], np.float32)
+    n, sigma = 5, 1.5
+    axis = np.linspace(-1, 1, n)
+    x, y, z = np.meshgrid(axis, axis, axis, indexing="ij")
+    expected = np.stack(
+        [
+            a * np.exp(-((x - mx) ** 2 + (y - my) ** 2 + (z - mz) ** 2) / (2 * (sigma / n) ** 2))
+            for mx, my, mz, a in kp
+        ],
+        axis=-1,
+    )
+    got = plain_forms.gaussian_maps(jnp.asarray(kp), sigma, n)
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)

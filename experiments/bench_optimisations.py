@@ -28,9 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic
 from nmjax import keypoints as kp_lib
-from nmjax.bench import environment
+from nmjax.bench import environment, print_and_save
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import blocks
 from nmjax.models.detector import VoxelDecoder
@@ -302,11 +301,7 @@ def main(argv: Sequence[str]) -> int:
     except (ValueError, FileNotFoundError) as err:
         print(f"bench_optimisations: {err}", file=sys.stderr)
         return 2
-    print()
-    print(format_optimisations(rows))
-    if args.out is not None:
-        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
-        print(f"wrote {args.out}")
+    print_and_save(format_optimisations(rows), args.out, env, args, rows)
     return 0
 
 

@@ -88,7 +88,7 @@ try:
 except ImportError:  # optional: the twin needs it, `--only jax` does not
     torch = F = nn = None
 
-from nmjax import atomic, bench
+from nmjax import bench
 from nmjax.config import PRESETS, SkelTrainConfig, apply_overrides, skel_preset
 from nmjax.models.blocks import LEAK, hourglass_levels, num_groups
 
@@ -739,11 +739,7 @@ def main(argv: Sequence[str]) -> int:
         both = row["jax"] is not None and row["torch"] is not None
         row["ratio"] = row["jax"]["median_s"] / row["torch"]["median_s"] if both else None
         rows.append(row)
-    print()
-    print(format_table(rows))
-    if args.out is not None:
-        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
-        print(f"wrote {args.out}")
+    bench.print_and_save(format_table(rows), args.out, env, args, rows)
     return 0
 
 

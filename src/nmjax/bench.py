@@ -65,6 +65,17 @@ def environment() -> dict[str, Any]:
     }
 
 
+def print_and_save(table: str, out: str | None, env: dict, args: Any, rows: list) -> None:
+    """Prints a benchmark's table; with `out`, writes {"environment", "args", "rows"} there."""
+    from nmjax import atomic
+
+    print()
+    print(table)
+    if out is not None:
+        atomic.write_json(out, {"environment": env, "args": vars(args), "rows": rows})
+        print(f"wrote {out}")
+
+
 def memory_of(compiled: Any) -> dict[str, int]:
     """Argument / output / temporary bytes of a compiled executable, plus the process peak.
 

@@ -27,6 +27,7 @@ from flax import nnx
 from nmjax import atomic, losses, metrics
 from nmjax import keypoints as kp_lib
 from nmjax.config import LossWeights, SkelTrainConfig
+from nmjax.data.pipeline import Augmentation
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
 
@@ -40,6 +41,7 @@ NonFiniteLossError = common.NonFiniteLossError
 def check_config(cfg: SkelTrainConfig) -> None:
     """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
     check_detector_config(cfg.model)
+    Augmentation.from_config(cfg.data)  # refuses out-of-range augmentation options
     if cfg.data.frames < 3:
         raise ValueError(
             f"data.frames (T) must be >= 3 (the trajectory loss needs accelerations), got "

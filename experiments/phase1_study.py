@@ -86,6 +86,9 @@ VARIANTS: dict[str, Variant] = {
         "data10x + temp0.5", ("model.keypoint_temperature=0.5",), sequences=300
     ),
     "data10x_vol10": Variant("data10x + vol10", ("weights.vol=10.0",), sequences=300),
+    "vol10_temp0.5": Variant(
+        "vol10 + temp0.5", ("weights.vol=10.0", "model.keypoint_temperature=0.5")
+    ),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),

@@ -40,6 +40,7 @@ import numpy as np
 from nmjax import atomic, metrics, runs
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.data import synthetic
+from nmjax.data.datasets import load_sequences
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import evaluate_phase1, phase1_outputs
 from nmjax.runs import Detector
@@ -89,6 +90,12 @@ VARIANTS: dict[str, Variant] = {
     "vol10_temp0.5": Variant(
         "vol10 + temp0.5", ("weights.vol=10.0", "model.keypoint_temperature=0.5")
     ),
+    # The supervised ceiling: how well this detector localises when it is told where the joints
+    # are (L_vol replaced by the MSE between keypoint k and joint k, K = J; Table 2's "GT").
+    "gt": Variant("L_vol -> MSE to the ground-truth joints, K = J (supervised)", ("gt_joints",)),
+    "gt_stride2": Variant(
+        "gt + 16^3 heatmaps (model.heatmap_stride = 2)", ("gt_joints", "model.heatmap_stride=2")
+    ),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),
@@ -103,9 +110,14 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
         raise SystemExit(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
     variant = VARIANTS[name]
     cfg = skel_preset(data, "cpu")
-    overrides = [o for o in variant.overrides if o != "sigma_half"]
+    overrides = [o for o in variant.overrides if o not in ("sigma_half", "gt_joints")]
     if "sigma_half" in variant.overrides:
         overrides.append(f"model.sigma_g={cfg.model.sigma_g / 2}")
+    if "gt_joints" in variant.overrides:
+        joints = load_sequences(data, "train", synthetic.ensure_dataset(data))[0].joints
+        if joints is None:
+            raise SystemExit(f"{data} has no ground-truth joints; variant {name!r} needs them")
+        overrides += [f"model.num_keypoints={joints.shape[1]}", "weights.vol_target=joints"]
     cfg = apply_overrides(cfg, overrides)
     cfg = dataclasses.replace(
         cfg,

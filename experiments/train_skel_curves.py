@@ -3,8 +3,10 @@
     .venv/bin/python experiments/train_skel_curves.py --run runs/skel-synth-arm-cpu
 
 Writes experiments/results/train_skel_<data>.json (the run's configuration, the command that made
-it, wall time, the final validation metrics and the curves) and .png (one panel per loss term,
-train and validation, plus the SC-score); `--out DIR` writes them to DIR instead.
+it, wall time, the final validation metrics, the curves and, unless `--no-test`, the run's scores
+on the test split under "test": SC in both definitions, tracking CD x1e4 and bone-length
+variation, from `nmjax.evaluate.evaluate_phase1`) and .png (one panel per loss term, train and
+validation, plus the SC-score); `--out DIR` writes them to DIR instead.
 """
 
 from __future__ import annotations
@@ -16,7 +18,9 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 
 from nmjax import atomic
+from nmjax.evaluate import evaluate_phase1
 from nmjax.losses import TERMS
+from nmjax.runs import Detector
 from nmjax.train import common
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
@@ -45,17 +49,34 @@ def plot(train: dict, val: dict, title: str, path: Path) -> None:
         ax.set_xlabel("step")
         if name != "sc_score":
             ax.set_yscale("log")
-        ax.legend(fontsize=7)
+        if ax.has_data():
+            ax.legend(fontsize=7)
     save_figure(fig, path, title=title, dpi=90)
 
 
-def main() -> None:
+def test_scores(run: Path, max_crops: int) -> dict[str, float]:
+    """The run's headline scores on its test split: {"sc", "sc_fixed_nodes" (both only with
+    ground-truth joints), "tracking_cd", "bone_length_variation" (only once the run has its
+    skeleton)}, the means that `evaluate_phase1` reports."""
+    results = evaluate_phase1(Detector.load(run), max_crops)
+    scores = {"tracking_cd": results["tracking"]["mean"]}
+    for key in ("sc", "sc_fixed_nodes"):
+        if key in results:
+            scores[key] = results[key]["score"]
+    if "bone_length_variation" in results:
+        scores["bone_length_variation"] = results["bone_length_variation"]["mean"]
+    return scores
+
+
+def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--run", required=True, type=Path, help="phase-1 run folder")
     parser.add_argument("--command", default="", help="the command that trained the run")
     parser.add_argument("--wall-minutes", type=float, default=None, help="measured wall time")
     parser.add_argument("--out", type=Path, default=RESULTS, help="output folder")
-    args = parser.parse_args()
+    parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
+    parser.add_argument("--no-test", action="store_true", help="skip the test-split scores")
+    args = parser.parse_args(argv)
 
     config = json.loads((args.run / "config.json").read_text())
     records = common.read_metrics(args.run)
@@ -72,6 +93,8 @@ def main() -> None:
         "train": train,
         "val": val,
     }
+    if not args.no_test:
+        summary["test"] = test_scores(args.run, args.max_crops)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic.write_json(args.out / f"train_skel_{data}.json", summary)
     plot(
@@ -81,6 +104,8 @@ def main() -> None:
         args.out / f"train_skel_{data}.png",
     )
     print({k: round(v, 4) for k, v in final_val.items()})
+    if "test" in summary:
+        print("test:", {k: round(v, 4) for k, v in summary["test"].items()})
 
 
 if __name__ == "__main__":

@@ -292,3 +292,39 @@ def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs
     assert "--horizons must be comma-separated integers >= 2" in capsys.readouterr().err
     assert cli.main(["evaluate", "--run", str(runs["skel"]), "--generation"]) == 2
     assert "phase-2" in capsys.readouterr().err
+
+
+def test_train_skel_curves_reports_the_test_scores(runs, tmp_path, monkeypatch):
+    """experiments/train_skel_curves.py writes the run's test-split scores under "test"."""
+    import importlib.util
+    import shutil
+    import sys
+    from pathlib import Path
+
+    from nmjax.runs import Detector
+
+    run = tmp_path / "skel"
+    shutil.copytree(runs["skel"], run)
+    records = [{"step": 5, "train/loss": 2.0}, {"step": 10, "train/loss": 1.5, "val/loss": 1.7}]
+    (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    script = Path(__file__).parents[1] / "experiments" / "train_skel_curves.py"
+    spec = importlib.util.spec_from_file_location("train_skel_curves", script)
+    module = importlib.util.module_from_spec(spec)
+    monkeypatch.setitem(sys.modules, spec.name, module)
+    spec.loader.exec_module(module)
+    out = tmp_path / "out"
+    module.main(["--run", str(run), "--out", str(out), "--max-crops", "1"])
+    summary = json.loads((out / "train_skel_synth-arm.json").read_text())
+    assert summary["steps"] == 10 and summary["final_val"] == {"loss": 1.7}
+    expected = evaluate.evaluate_phase1(Detector.load(run), 1)
+    assert summary["test"] == pytest.approx(
+        {
+            "sc": expected["sc"]["score"],
+            "sc_fixed_nodes": expected["sc_fixed_nodes"]["score"],
+            "tracking_cd": expected["tracking"]["mean"],
+            "bone_length_variation": expected["bone_length_variation"]["mean"],
+        }
+    )
+    assert (out / "train_skel_synth-arm.png").read_bytes()[:4] == b"\x89PNG"
+    module.main(["--run", str(run), "--out", str(out), "--no-test"])
+    assert "test" not in json.loads((out / "train_skel_synth-arm.json").read_text())

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import load_experiment
 from flax import nnx
 
 from nmjax import bench, losses
@@ -111,20 +111,10 @@ def test_bench_refuses_bad_override(capsys):
     assert "nope" in err and len(err.strip().splitlines()) == 1
 
 
-def test_optimisation_benchmark_times_the_model_against_the_plain_forms(
-    tmp_path, capsys, monkeypatch
-):
+def test_optimisation_benchmark_times_the_model_against_the_plain_forms(tmp_path, capsys):
     """experiments/bench_optimisations.py at tiny shapes: one row per case (a)-(d), each pair
     computing the same function ((e) needs a dataset on disk and is left out)."""
-    import importlib.util
-    from pathlib import Path
-
-    script = Path(__file__).parents[1] / "experiments" / "bench_optimisations.py"
-    spec = importlib.util.spec_from_file_location("bench_optimisations", script)
-    module = importlib.util.module_from_spec(spec)
-    # Registered before it runs: its dataclasses resolve their annotations through sys.modules.
-    monkeypatch.setitem(sys.modules, spec.name, module)
-    spec.loader.exec_module(module)
+    module = load_experiment("bench_optimisations.py")
     out = tmp_path / "opt.json"
     argv = ["--preset", "tiny", "--only", "a", "b", "c", "d", "--repeats", "1", "--out", str(out)]
     assert module.main(argv) == 0

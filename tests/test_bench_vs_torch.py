@@ -6,29 +6,23 @@ without it, the missing-torch exit path is tested with torch hidden.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from experiment_scripts import load_experiment
 from flax import nnx
 
 from nmjax import losses
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.models.detector import KeypointDetector
 
-SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "bench_vs_torch.py"
-
 
 def load_script(name: str = "bench_vs_torch"):
-    spec = importlib.util.spec_from_file_location(name, SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_experiment("bench_vs_torch.py", name)
 
 
 @pytest.fixture(scope="module")

@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+from experiment_scripts import load_experiment
 from tiny_runs import PARENTS, make_runs
 
 from nmjax import evaluate, metrics
@@ -294,12 +295,9 @@ def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs
     assert "phase-2" in capsys.readouterr().err
 
 
-def test_train_skel_curves_reports_the_test_scores(runs, tmp_path, monkeypatch):
+def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
     """experiments/train_skel_curves.py writes the run's test-split scores under "test"."""
-    import importlib.util
     import shutil
-    import sys
-    from pathlib import Path
 
     from nmjax.runs import Detector
 
@@ -307,11 +305,7 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path, monkeypatch):
     shutil.copytree(runs["skel"], run)
     records = [{"step": 5, "train/loss": 2.0}, {"step": 10, "train/loss": 1.5, "val/loss": 1.7}]
     (run / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
-    script = Path(__file__).parents[1] / "experiments" / "train_skel_curves.py"
-    spec = importlib.util.spec_from_file_location("train_skel_curves", script)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, module)
-    spec.loader.exec_module(module)
+    module = load_experiment("train_skel_curves.py")
     out = tmp_path / "out"
     module.main(["--run", str(run), "--out", str(out), "--max-crops", "1"])
     summary = json.loads((out / "train_skel_synth-arm.json").read_text())

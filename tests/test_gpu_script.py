@@ -3,7 +3,6 @@ the CPU, so that it cannot rot between the rare GPU loans, and its planning help
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import os
@@ -17,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from experiment_scripts import load_experiment
 
 REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "experiments" / "gpu" / "paper_scale.sh"
@@ -24,15 +24,7 @@ SCRIPT = REPO / "experiments" / "gpu" / "paper_scale.sh"
 RETURNABLE = re.compile(r"[A-Za-z0-9._-]+")
 
 
-def _load_module():
-    spec = importlib.util.spec_from_file_location("paper_scale", SCRIPT.with_suffix(".py"))
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while it executes
-    spec.loader.exec_module(module)
-    return module
-
-
-paper_scale = _load_module()
+paper_scale = load_experiment("gpu/paper_scale.py")
 
 
 def _pinned_jax() -> str:

@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import pytest
-
-SCRIPT = Path(__file__).parents[1] / "experiments" / "phase1_study.py"
+from experiment_scripts import load_experiment
 
 
 @pytest.fixture
@@ -21,10 +18,7 @@ def study(tmp_path, monkeypatch):
         "synth-arm", tmp_path / "synth-arm", num_sequences=3, frames=12, points=1500, progress=False
     )
     monkeypatch.setenv("NMJAX_DATA", str(tmp_path))
-    spec = importlib.util.spec_from_file_location("phase1_study", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    monkeypatch.setitem(sys.modules, spec.name, module)  # its dataclasses resolve through it
-    spec.loader.exec_module(module)
+    module = load_experiment("phase1_study.py")
     generated = []
     real = synthetic.ensure_dataset
 

@@ -6,7 +6,8 @@ wall-clock budget, scored on the standard test split.
     .venv/bin/python experiments/phase1_study.py --report      # rewrite the table only
 
 Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>-<budget>`
-with the `cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every
+with the `cpu` preset as it was before the study (without `config.CPU_STUDY_CHANGES`, so
+every row has the same base) plus the variant's overrides, stopped by `time_limit_minutes` (so every
 variant gets the same wall time, whatever its step cost; the preset's learning-rate milestones
 lie beyond a short budget, so every variant trains at the constant peak rate), or after `--steps`
 steps when the cores are shared with other work (a wall-clock budget then measures the load, not
@@ -62,7 +63,7 @@ class Variant:
 # body as the paper's 16^3 at G=64, so "sigma_paper" halves sigma_g to keep the paper's width in
 # body units (1.5 -> 0.75 on synth-arm, 1.0 -> 0.5 on synth-hand).
 VARIANTS: dict[str, Variant] = {
-    "base": Variant("the cpu preset"),
+    "base": Variant("the cpu preset without its study changes (config.CPU_STUDY_CHANGES)"),
     "data10x": Variant("10x training sequences (300, seed 1)", sequences=300),
     "sigma_paper": Variant("sigma_g halved (the paper's width in body units)", ("sigma_half",)),
     "vol10": Variant("w_vol = 10", ("weights.vol=10.0",)),
@@ -109,7 +110,7 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     if name not in VARIANTS:
         raise SystemExit(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
     variant = VARIANTS[name]
-    cfg = skel_preset(data, "cpu")
+    cfg = skel_preset(data, "cpu", study_changes=False)  # rows stay comparable across adoptions
     overrides = [o for o in variant.overrides if o not in ("sigma_half", "gt_joints")]
     if "sigma_half" in variant.overrides:
         overrides.append(f"model.sigma_g={cfg.model.sigma_g / 2}")

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 from nmjax import atomic, runs
-from nmjax.config import dyn_preset, skel_preset
+from nmjax.config import SkelTrainConfig, dyn_preset, skel_preset
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
 from nmjax.train import common, skel
@@ -37,6 +37,20 @@ def command_line() -> str:
     return "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv)
 
 
+def supervised_by_joints(cfg: SkelTrainConfig, data: str) -> SkelTrainConfig:
+    """`cfg` made Table 2's ground-truth-supervised baseline: K = J keypoints, L_vol replaced by
+    the MSE between keypoint k and joint k (`weights.vol_target = "joints"`), J read from the
+    first training sequence of `data` in `cfg.data.root`."""
+    seq = load_sequences(data, "train", ensure_dataset(data, cfg.data.root))[0]
+    if seq.joints is None:
+        raise ValueError(f"{data} has no ground-truth joints; the supervised variant needs them")
+    return dataclasses.replace(
+        cfg,
+        model=dataclasses.replace(cfg.model, num_keypoints=int(seq.joints.shape[1])),
+        weights=dataclasses.replace(cfg.weights, vol_target="joints"),
+    )
+
+
 def skel_config(data: str, variant: str, steps: int):
     """The phase-1 configuration of `variant` (see the module docstring)."""
     cfg = skel_preset(data, "cpu")
@@ -44,14 +58,7 @@ def skel_config(data: str, variant: str, steps: int):
     milestones = (max(1, int(steps * 2 / 3)), max(1, int(steps * 5 / 6)))
     cfg = dataclasses.replace(cfg, lr_milestones=milestones)
     if variant == "gt":
-        seq = load_sequences(data, "train", ensure_dataset(data, cfg.data.root))[0]
-        if seq.joints is None:
-            raise ValueError(f"{data} has no ground-truth joints; the GT variant needs them")
-        cfg = dataclasses.replace(
-            cfg,
-            model=dataclasses.replace(cfg.model, num_keypoints=int(seq.joints.shape[1])),
-            weights=dataclasses.replace(cfg.weights, vol_target="joints"),
-        )
+        cfg = supervised_by_joints(cfg, data)
     elif variant == "no_vol":
         cfg = dataclasses.replace(cfg, weights=dataclasses.replace(cfg.weights, vol=0.0))
     elif variant == "no_traj":

@@ -36,12 +36,12 @@ import sys
 import time
 from pathlib import Path
 
+import exp_common
 import numpy as np
 
 from nmjax import atomic, metrics, runs
 from nmjax.config import apply_overrides, skel_preset
 from nmjax.data import synthetic
-from nmjax.data.datasets import load_sequences
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import evaluate_phase1, phase1_outputs
 from nmjax.runs import Detector
@@ -114,12 +114,9 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     overrides = [o for o in variant.overrides if o not in ("sigma_half", "gt_joints")]
     if "sigma_half" in variant.overrides:
         overrides.append(f"model.sigma_g={cfg.model.sigma_g / 2}")
-    if "gt_joints" in variant.overrides:
-        joints = load_sequences(data, "train", synthetic.ensure_dataset(data))[0].joints
-        if joints is None:
-            raise SystemExit(f"{data} has no ground-truth joints; variant {name!r} needs them")
-        overrides += [f"model.num_keypoints={joints.shape[1]}", "weights.vol_target=joints"]
     cfg = apply_overrides(cfg, overrides)
+    if "gt_joints" in variant.overrides:
+        cfg = exp_common.supervised_by_joints(cfg, data)
     cfg = dataclasses.replace(
         cfg,
         seed=seed,

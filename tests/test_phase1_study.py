@@ -1,4 +1,5 @@
-"""experiments/phase1_study.py: every variant builds a configuration that can train."""
+"""experiments/phase1_study.py: every variant builds a configuration that can train, and the
+cpu preset adopts only measured variants."""
 
 from __future__ import annotations
 
@@ -53,3 +54,22 @@ def test_every_variant_is_a_valid_config_with_its_change(study):
     )
     with pytest.raises(SystemExit, match="unknown variant"):
         study.variant_config("synth-arm", "nope", 1, 0)
+
+
+def test_cpu_preset_adopts_measured_variants_and_the_base_stays_without_them(study):
+    import dataclasses
+
+    from nmjax.config import CPU_STUDY_CHANGES, skel_preset
+
+    hand = skel_preset("synth-hand", "cpu")
+    assert (hand.weights.vol, hand.model.keypoint_temperature) == (10.0, 0.5)
+    base = study.variant_config("synth-hand", "base", 12.0, 0)
+    assert (base.weights.vol, base.model.keypoint_temperature) == (0.1, 1.0)  # HanCo's w_vol
+    assert skel_preset("synth-hand", "default").weights.vol == 0.1  # the paper's scale: untouched
+    # Every adopted change is one of the study's variants, so its rows are the evidence.
+    measured = {v.overrides: name for name, v in study.VARIANTS.items() if v.sequences is None}
+    for data, changes in CPU_STUDY_CHANGES.items():
+        name = measured[changes]
+        row = study.variant_config(data, name, 12.0, 0)
+        budget = {"steps": row.steps, "time_limit_minutes": 12.0, "seed": 0}
+        assert row == dataclasses.replace(skel_preset(data, "cpu"), **budget), (data, name)

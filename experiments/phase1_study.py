@@ -91,6 +91,14 @@ VARIANTS: dict[str, Variant] = {
     "vol10_temp0.5": Variant(
         "vol10 + temp0.5", ("weights.vol=10.0", "model.keypoint_temperature=0.5")
     ),
+    # A lower temperature, since heatmap^2 is what moved the keypoints' localisation.
+    "temp0.25": Variant(
+        "keypoints from heatmap^4 (model.keypoint_temperature = 0.25)",
+        ("model.keypoint_temperature=0.25",),
+    ),
+    "vol10_temp0.25": Variant(
+        "vol10 + temp0.25", ("weights.vol=10.0", "model.keypoint_temperature=0.25")
+    ),
     # The supervised ceiling: how well this detector localises when it is told where the joints
     # are (L_vol replaced by the MSE between keypoint k and joint k, K = J; Table 2's "GT").
     "gt": Variant("L_vol -> MSE to the ground-truth joints, K = J (supervised)", ("gt_joints",)),
@@ -256,7 +264,9 @@ def write_report(rows: list[dict]) -> None:
         "# Phase-1 study at CPU scale",
         "",
         "Made by `experiments/phase1_study.py` (the command of each row below). Every variant "
-        "trains from the `cpu` preset for a fixed budget (column budget: wall-clock minutes "
+        "trains from the `cpu` preset as it was before the study (without "
+        "`config.CPU_STUDY_CHANGES`, which hold the adopted variants, so every row has the same "
+        "base) for a fixed budget (column budget: wall-clock minutes "
         "through `time_limit_minutes`, or a step count where the cores were shared) and is "
         "scored on the standard test split of its body (`nmjax.evaluate.evaluate_phase1`, up "
         "to 8 crops per test sequence). SC: Eq. 21 as published (per-frame alpha >= 0.2); SC "

@@ -290,8 +290,9 @@ def skel_preset(
     data_cfg = DataConfig(name=data, sample_rate=spec.sample_rate)
     cfg = SkelTrainConfig(data=data_cfg, model=model, weights=weights)
     if preset == "cpu":
-        # Sized for 2 CPU cores (about 0.8 steps/s): 12 frames of 32^3 per step instead of 30 of
-        # 64^3.
+        # Sized for 2 CPU cores: 12 frames of 32^3 per step instead of 30 of 64^3. The 2,200
+        # steps took 15-17 minutes on a 2-core AVX-512 EPYC and take about 3x longer on a
+        # 2.0 GHz AVX2 one (experiments/results/NOTES.md).
         cfg = dataclasses.replace(
             cfg,
             data=dataclasses.replace(data_cfg, grid=32, frames=6, batch_size=2),

@@ -18,6 +18,7 @@ BAD_INPUTS = {
         (["--resume", "--run", MISSING], MISSING),
         (["--resume"], "--run"),
         (["--steps", "0"], "--steps"),
+        (["--fit-minutes", "0"], "--fit-minutes"),
     ],
     "extract-skeleton": [(["--run", MISSING], MISSING), ([], "--run")],
     "export-keypoints": [(["--run", MISSING], MISSING), (["--split", "val"], "val")],

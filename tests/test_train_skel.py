@@ -266,3 +266,56 @@ def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(data_root, t
     assert result.returncode == 2, result.stderr[-2000:]
     assert "checkpoint 2" in result.stderr and "corrupt" in result.stderr
     assert {p: p.read_bytes() for p in (run / "checkpoints").rglob("*") if p.is_file()} == files
+
+
+def test_fit_schedule_scales_steps_and_milestones_to_the_budget():
+    cfg = dataclasses.replace(skel_preset("synth-arm", "tiny"), steps=20, lr_milestones=(10, 15))
+    # 15 s at 1 s per step plus 20% overhead: 12 steps, the milestones at half and 3/4 of them.
+    fitted = config.fit_schedule(cfg, 1.0, 0.25, overhead=0.2)
+    assert (fitted.steps, fitted.lr_milestones) == (12, (6, 9))
+    assert fitted.time_limit_minutes == pytest.approx(0.25)
+    # What the timing spent comes off the budget, for the steps and the stop alike.
+    fitted = config.fit_schedule(cfg, 1.0, 0.25, spent_seconds=3.0, overhead=0.2)
+    assert (fitted.steps, fitted.lr_milestones) == (10, (5, 8))
+    assert fitted.time_limit_minutes == pytest.approx(0.2)
+    assert fitted.model == cfg.model and fitted.weights == cfg.weights
+    # A faster step than the preset assumed buys more steps than the preset's.
+    assert config.fit_schedule(cfg, 0.5, 60.0, overhead=0.0).steps == 7200
+    with pytest.raises(ValueError, match="fit only 0 steps"):
+        config.fit_schedule(cfg, 10.0, 0.1)
+    with pytest.raises(ValueError, match="seconds_per_step > 0"):
+        config.fit_schedule(cfg, 0.0, 10.0)
+
+
+def test_fit_minutes_times_the_step_and_trains_the_fitted_schedule(
+    data_root, tmp_path, monkeypatch, capsys
+):
+    from nmjax import bench
+
+    timed = []
+
+    # A 100 s step, whatever this machine does: the fitted 22 minutes are far more than the 12
+    # tiny steps take on a loaded machine, so the time limit cannot cut the run short.
+    def fake_bench(cfg, preset, steps, warmup):
+        timed.append(cfg)
+        return {"compute_s_median": 99.8, "load_s_per_step": 0.2}
+
+    monkeypatch.setattr(bench, "bench_skel", fake_bench)
+    run = tmp_path / "run"
+    small = ["data.grid=8", "model.grid=8", "data.frames=3", "data.batch_size=1"]
+    small += ["model.channels=4", "model.num_keypoints=4", "model.hourglass_channels=4,4,4"]
+    small += ["val_batches=1", "lr_milestones=10,15"]
+    argv = ["train-skel", "--data", "synth-arm", "--preset", "tiny", "--root", str(data_root)]
+    argv += ["--run", str(run), "--no-progress", *(a for s in small for a in ("--set", s))]
+    assert nmjax_main([*argv, "--fit-minutes", "22"]) == 0
+    # 1,320 s / (100 s x 1.08) = 12.2 steps; the milestones 10 and 15 of 20 scale with them.
+    saved = json.loads((run / "config.json").read_text())
+    assert (saved["steps"], tuple(saved["lr_milestones"])) == (12, (6, 9))
+    assert 21.5 < saved["time_limit_minutes"] <= 22.0
+    assert len(timed) == 1 and timed[0].steps == 20 and timed[0].model.grid == 8
+    assert "12 steps" in capsys.readouterr().err
+    assert (run / "checkpoints" / "12").exists()
+    # The schedule is fixed at the start: with --steps or --resume the option is refused.
+    for extra in (["--steps", "5"], ["--resume"]):
+        assert nmjax_main([*argv, "--fit-minutes", "22", *extra]) == 2
+        assert "--fit-minutes" in capsys.readouterr().err

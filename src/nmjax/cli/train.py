@@ -1,7 +1,7 @@
 """`nmjax train-skel` and `nmjax train-dyn`: the two training phases.
 
-    nmjax train-skel --data synth-arm --preset cpu [--steps N] [--run DIR] [--resume]
-                     [--overwrite] [--set model.channels=16 --set weights.vol=1.0 ...]
+    nmjax train-skel --data synth-arm --preset cpu [--steps N | --fit-minutes M] [--run DIR]
+                     [--resume] [--overwrite] [--set model.channels=16 --set weights.vol=1.0 ...]
     nmjax train-dyn [--data NAME] [--skel-run DIR] [--model nm|vrnn] [--preset default|cpu|tiny]
                     [--steps N] [--run DIR] [--resume] [--seed S] [--batch-size B] [--set ...]
 
@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
+import time
 from pathlib import Path
 
 from nmjax.cli import Parser, parser, positive
@@ -96,19 +98,64 @@ def skel_parser() -> Parser:
     p.add_argument("--data", default=None, help=f"one of {', '.join(DATASETS)} (synth-hand)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     p.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
+    p.add_argument(
+        "--fit-minutes",
+        type=float,
+        default=None,
+        metavar="M",
+        help="time the train step first, then train as many steps as fit M minutes of wall "
+        "time, the learning-rate milestones at the preset's fractions of the run",
+    )
     _common_args(p, "skel")
     return p
 
 
+# Timed steps (after 2 warm-up steps) behind --fit-minutes: enough for a steady median.
+FIT_TIMED_STEPS = 5
+
+
+def fit_to_minutes(cfg, args: argparse.Namespace, started: float):
+    """--fit-minutes: times `cfg`'s step (`nmjax.bench.bench_skel`) and fits the schedule.
+
+    `started` is the command's start (time.perf_counter), so the budget covers the timing too.
+    """
+    import jax
+
+    from nmjax import bench
+    from nmjax.config import fit_schedule
+
+    if args.resume:
+        raise ValueError("--fit-minutes sets a new run's schedule; --resume keeps the run's own")
+    if args.steps is not None:
+        raise ValueError("give --steps or --fit-minutes, not both")
+    if jax.process_count() > 1:
+        raise ValueError("--fit-minutes works in single-process runs only; set --steps instead")
+    row = bench.bench_skel(cfg, "fit", steps=FIT_TIMED_STEPS, warmup=2)
+    per_step = row["compute_s_median"] + row["load_s_per_step"]
+    fitted = fit_schedule(cfg, per_step, args.fit_minutes, time.perf_counter() - started)
+    print(
+        f"--fit-minutes {args.fit_minutes:g}: {per_step:.3f} s per step -> {fitted.steps} steps, "
+        f"learning-rate milestones {fitted.lr_milestones}, training stops by "
+        f"{fitted.time_limit_minutes:.1f} minutes",
+        file=sys.stderr,
+    )
+    return fitted
+
+
 def train_skel(argv: list[str]) -> int:
+    started = time.perf_counter()
     p = skel_parser()
     args = p.parse_args(argv)
     positive(p, args, "steps")
+    if args.fit_minutes is not None and not args.fit_minutes > 0:
+        p.error(f"--fit-minutes must be > 0, got {args.fit_minutes}")
     _initialize(args)
     from nmjax import runs
     from nmjax.train import skel
 
     cfg = skel_config(args)
+    if args.fit_minutes is not None:
+        cfg = fit_to_minutes(cfg, args, started)
     run = Path(cfg.run) if cfg.run else skel.default_run_dir(cfg.data.name)
     summary = skel.train(
         cfg, run, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress

@@ -124,10 +124,6 @@ def fit_to_minutes(cfg, args: argparse.Namespace, started: float):
     from nmjax import bench
     from nmjax.config import fit_schedule
 
-    if args.resume:
-        raise ValueError("--fit-minutes sets a new run's schedule; --resume keeps the run's own")
-    if args.steps is not None:
-        raise ValueError("give --steps or --fit-minutes, not both")
     if jax.process_count() > 1:
         raise ValueError("--fit-minutes works in single-process runs only; set --steps instead")
     row = bench.bench_skel(cfg, "fit", steps=FIT_TIMED_STEPS, warmup=2)
@@ -147,8 +143,13 @@ def train_skel(argv: list[str]) -> int:
     p = skel_parser()
     args = p.parse_args(argv)
     positive(p, args, "steps")
-    if args.fit_minutes is not None and not args.fit_minutes > 0:
-        p.error(f"--fit-minutes must be > 0, got {args.fit_minutes}")
+    if args.fit_minutes is not None:  # refused here, before a run's config is read
+        if not args.fit_minutes > 0:
+            p.error(f"--fit-minutes must be > 0, got {args.fit_minutes}")
+        if args.resume:
+            p.error("--fit-minutes sets a new run's schedule; --resume keeps the run's own")
+        if args.steps is not None:
+            p.error("give --steps or --fit-minutes, not both")
     _initialize(args)
     from nmjax import runs
     from nmjax.train import skel

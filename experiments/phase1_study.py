@@ -91,6 +91,20 @@ VARIANTS: dict[str, Variant] = {
     "vol10_temp0.5": Variant(
         "vol10 + temp0.5", ("weights.vol=10.0", "model.keypoint_temperature=0.5")
     ),
+    # The other levers on top of synth-hand's adopted vol10_temp0.5 (config.CPU_STUDY_CHANGES).
+    "vol10_temp0.5_c32": Variant(
+        "vol10_temp0.5 + c32",
+        (
+            "weights.vol=10.0",
+            "model.keypoint_temperature=0.5",
+            "model.channels=32",
+            "model.hourglass_channels=(32,48,64)",
+        ),
+    ),
+    "vol10_temp0.5_sigma_paper": Variant(
+        "vol10_temp0.5 + sigma_paper",
+        ("weights.vol=10.0", "model.keypoint_temperature=0.5", "sigma_half"),
+    ),
     # A lower temperature, since heatmap^2 is what moved the keypoints' localisation.
     "temp0.25": Variant(
         "keypoints from heatmap^4 (model.keypoint_temperature = 0.25)",

@@ -105,6 +105,12 @@ VARIANTS: dict[str, Variant] = {
         "vol10_temp0.5 + sigma_paper",
         ("weights.vol=10.0", "model.keypoint_temperature=0.5", "sigma_half"),
     ),
+    # 16^3 heatmaps at G=32: the paper's heatmap resolution, and sigma_g (in cells) its width
+    # in body units, for the hand's fingers that lie under a cell apart at 8^3.
+    "vol10_temp0.5_stride2": Variant(
+        "vol10_temp0.5 + 16^3 heatmaps (model.heatmap_stride = 2)",
+        ("weights.vol=10.0", "model.keypoint_temperature=0.5", "model.heatmap_stride=2"),
+    ),
     # A lower temperature, since heatmap^2 is what moved the keypoints' localisation.
     "temp0.25": Variant(
         "keypoints from heatmap^4 (model.keypoint_temperature = 0.25)",

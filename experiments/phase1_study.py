@@ -125,6 +125,15 @@ VARIANTS: dict[str, Variant] = {
     "gt_stride2": Variant(
         "gt + 16^3 heatmaps (model.heatmap_stride = 2)", ("gt_joints", "model.heatmap_stride=2")
     ),
+    # Validate and export the running average of the weights (decay 0.99: a time constant of
+    # about 100 steps) instead of the last weights, which at the constant peak rate of a short
+    # budget move the keypoints from step to step (the arm's validation SC rose after its first
+    # learning-rate decay in the 2,200-step run).
+    "ema": Variant("weights averaged over the steps (ema_decay = 0.99)", ("ema_decay=0.99",)),
+    "vol10_temp0.5_ema": Variant(
+        "vol10_temp0.5 + ema",
+        ("weights.vol=10.0", "model.keypoint_temperature=0.5", "ema_decay=0.99"),
+    ),
     "batch4x3": Variant(
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),

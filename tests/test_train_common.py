@@ -55,6 +55,34 @@ def test_optimizer_rejects_bad_schedule(milestones, decay):
         common.make_optimizer(1e-3, milestones, decay, 1.0)
 
 
+def test_weight_average_is_the_bias_corrected_ema_of_the_updated_weights():
+    """apply_gradients keeps optax.ema of the weights after each update; trained_model hands out
+    its bias-corrected value (sum_i (1-d) d^(n-i) w_i / (1 - d^n)); without it, the weights."""
+    decay = 0.6
+    settings = common.OptimizerSettings(0.1, clip_norm=None, ema_decay=decay)
+    graphdef, state = common.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), settings)
+    grads_seq = [1.0, -2.0, 0.5]
+    weights = []
+    for g in grads_seq:
+        model = nnx.merge(graphdef, state["model"])
+        grads = jax.tree.map(lambda x, g=g: jnp.full_like(x, g), nnx.state(model, nnx.Param))
+        state = common.apply_gradients(model, grads, state, settings)
+        weights.append(np.asarray(state["model"]["kernel"][...]))
+    n = len(weights)
+    expected = sum((1 - decay) * decay ** (n - 1 - i) * w for i, w in enumerate(weights))
+    expected /= 1 - decay**n
+    averaged = common.trained_model(graphdef, state, decay)
+    np.testing.assert_allclose(averaged.kernel[...], expected, rtol=1e-5)
+    assert not np.allclose(expected, weights[-1])  # the average is not the last weights
+    plain = common.OptimizerSettings(0.1, clip_norm=None)
+    _, plain_state = common.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), plain)
+    assert "ema" not in plain_state
+    np.testing.assert_array_equal(
+        common.trained_model(graphdef, plain_state, 0.0).kernel[...],
+        plain_state["model"]["kernel"][...],
+    )
+
+
 def test_config_round_trip():
     cfg = SkelTrainConfig(model=DetectorConfig(hourglass_channels=(4, 5, 6)), steps=7)
     back = common.config_from_dict(SkelTrainConfig, common.config_to_dict(cfg))

@@ -13,7 +13,9 @@ import chex
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
+from flax import nnx
 from tiny_configs import small_arm_data, small_skel_config
 
 from nmjax import config, runs
@@ -124,6 +126,33 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, mo
         np.testing.assert_allclose(archive[seq.name], direct[:8], rtol=1e-5, atol=1e-6)
 
 
+def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, tmp_path):
+    cfg = _cfg(data_root, ema_decay=0.5)
+    straight = skel.train(cfg, tmp_path / "straight", progress=False, finalize=False)
+    skel.train(dataclasses.replace(cfg, steps=3), tmp_path / "resumed", progress=False)
+    resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
+    graphdef, state = skel.build(cfg)
+    assert set(state) == {"model", "opt", "ema"}
+    abstract = skel.abstract_state(state)
+    restored = {}
+    for name in ("straight", "resumed"):
+        with common.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
+            restored[name] = ckpt.restore(abstract, step=6)[1]
+    for a, b in zip(_leaves(restored["straight"]), _leaves(restored["resumed"]), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
+    # The exported detector carries the average, not the last weights.
+    state = restored["straight"]
+    exported, _ = runs.load_detector(tmp_path / "straight", step=6)
+    last = nnx.merge(graphdef, state["model"])
+    average = optax.tree.bias_correction(state["ema"].ema, 0.5, state["ema"].count)
+    got = jax.tree.leaves(nnx.state(exported, nnx.Param))
+    for leaf, avg in zip(got, jax.tree.leaves(average), strict=True):
+        np.testing.assert_allclose(leaf, avg, rtol=1e-6)
+    weights = jax.tree.leaves(nnx.state(last, nnx.Param))
+    assert any(not np.allclose(a, w) for a, w in zip(got, weights, strict=True))
+
+
 def test_sequence_windows_pad_with_last_frame():
     frames = np.arange(7, dtype=np.float32)[:, None, None, None] * np.ones((7, 2, 2, 2))
     windows = runs.sequence_windows(frames, 3)
@@ -191,6 +220,7 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
     ("override", "match"),
     [
         ("time_limit_minutes=-1", "time_limit_minutes"),
+        ("ema_decay=1", "ema_decay"),
         ("model.num_keypoints=1", "num_keypoints"),
         ("model.grid=18", "multiple of 4"),
         ("data.frames=2", "frames"),

@@ -179,6 +179,10 @@ class SkelTrainConfig:
     lr_milestones: tuple[int, int] = (12_000, 17_000)  # steps; scaled by lr_decay
     lr_decay: tuple[float, float] = (0.25, 0.1)
     clip_norm: float = 1.0
+    # > 0: also keep an exponential moving average of the weights with this decay per step
+    # (bias-corrected), and validate, checkpoint-select and export the averaged detector; 0 (the
+    # paper): the weights as trained.
+    ema_decay: float = 0.0
     seed: int = 0
     log_every: int = 50
     val_every: int = 500

@@ -88,7 +88,7 @@ def load_detector(run: str | Path, step: int | None = None) -> tuple[KeypointDet
         _, state = ckpt.restore(abstract, step=step)
     finally:
         ckpt.close()
-    return skel.model_of(graphdef, state), cfg
+    return skel.model_of(graphdef, state, cfg), cfg
 
 
 @dataclasses.dataclass

@@ -104,35 +104,62 @@ class OptimizerSettings:
     milestones: tuple[int, ...] = ()
     decay: tuple[float, ...] = ()
     clip_norm: float | None = 1.0
+    ema_decay: float = 0.0  # > 0: keep an average of the weights (`ema_weights`); 0: none
 
     @classmethod
     def of(cls, cfg: Any) -> OptimizerSettings:
-        """From a train config (phase 2 has no learning-rate milestones)."""
+        """From a train config (phase 2 has no learning-rate milestones and no weight average)."""
         milestones = tuple(getattr(cfg, "lr_milestones", ()))
         decay = tuple(getattr(cfg, "lr_decay", ()))
-        return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm)
+        ema_decay = float(getattr(cfg, "ema_decay", 0.0))
+        return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm, ema_decay)
 
     def make(self) -> optax.GradientTransformation:
         return make_optimizer(self.learning_rate, self.milestones, self.decay, self.clip_norm)
 
+    def make_ema(self) -> optax.GradientTransformation:
+        """The weight average: optax.ema over the parameters after each update (bias-corrected,
+        so the first steps are not pulled towards the initialisation)."""
+        return optax.ema(self.ema_decay, debias=True)
+
 
 def init_state(model: Any, optimizer: OptimizerSettings) -> tuple[Any, dict[str, Any]]:
-    """(graphdef, {"model": model state, "opt": optax state of its nnx.Param}) of a new model."""
+    """(graphdef, {"model": model state, "opt": optax state of its nnx.Param[, "ema": optax.ema
+    state of the nnx.Param when `optimizer.ema_decay` > 0]}) of a new model."""
     graphdef, model_state = nnx.split(model)
-    return graphdef, {
-        "model": model_state,
-        "opt": optimizer.make().init(nnx.state(model, nnx.Param)),
-    }
+    params = nnx.state(model, nnx.Param)
+    state = {"model": model_state, "opt": optimizer.make().init(params)}
+    if optimizer.ema_decay > 0:
+        state["ema"] = optimizer.make_ema().init(params)
+    return graphdef, state
 
 
 def apply_gradients(
-    model: Any, grads: Any, opt_state: Any, optimizer: OptimizerSettings
+    model: Any, grads: Any, state: dict[str, Any], optimizer: OptimizerSettings
 ) -> dict[str, Any]:
-    """Inside a step: one optimizer update of `model`'s nnx.Param; the new {"model", "opt"}."""
+    """Inside a step: one optimizer update of `model`'s nnx.Param, and of the weight average
+    when `state` keeps one; the new {"model", "opt"[, "ema"]}."""
     params = nnx.state(model, nnx.Param)
-    updates, opt_state = optimizer.make().update(grads, opt_state, params)
-    nnx.update(model, optax.apply_updates(params, updates))
-    return {"model": nnx.state(model), "opt": opt_state}
+    updates, opt_state = optimizer.make().update(grads, state["opt"], params)
+    params = optax.apply_updates(params, updates)
+    nnx.update(model, params)
+    new_state = {"model": nnx.state(model), "opt": opt_state}
+    if "ema" in state:
+        _, new_state["ema"] = optimizer.make_ema().update(params, state["ema"])
+    return new_state
+
+
+def trained_model(graphdef: Any, state: dict[str, Any], ema_decay: float) -> Any:
+    """The model that `state` stands for: its weights, or, when the run keeps a weight average
+    ("ema", decay `ema_decay`), the bias-corrected running average of its nnx.Param (Polyak
+    averaging with exponential weights), which validation and every exported model then use."""
+    # A copy: merged without one, the model's variables are those of `state`, and putting the
+    # average into them would overwrite the weights being trained.
+    model = nnx.merge(graphdef, state["model"], copy=True)
+    if "ema" in state:
+        ema = state["ema"]
+        nnx.update(model, optax.tree.bias_correction(ema.ema, ema_decay, ema.count))
+    return model
 
 
 def abstract_state(state: Any) -> Any:

@@ -136,7 +136,7 @@ def train_step(state, poses, starts, base_key, step, *, graphdef, settings: Step
     x = parallel.constrain_batch(x, mesh)
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (_, metrics), grads = grad_fn(model, x, key_model, settings.kl_weight)
-    state = common.apply_gradients(model, grads, state["opt"], settings.optimizer)
+    state = common.apply_gradients(model, grads, state, settings.optimizer)
     metrics["grad_norm"] = optax.tree.norm(grads)
     return parallel.constrain_replicated((state, metrics), mesh)
 

@@ -55,6 +55,10 @@ def check_config(cfg: SkelTrainConfig) -> None:
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size must be >= 1, got {cfg.data.batch_size}")
     common.check_positive(cfg, ("steps", "log_every", "val_every", "val_batches", "ckpt_every"))
+    if not 0 <= cfg.ema_decay < 1:
+        raise ValueError(
+            f"ema_decay must be in [0, 1) (0: no weight average; e.g. 0.99), got {cfg.ema_decay}"
+        )
     if not cfg.time_limit_minutes >= 0:
         raise ValueError(
             f"time_limit_minutes must be >= 0 (0: no limit), got {cfg.time_limit_minutes}"
@@ -96,7 +100,8 @@ def train_step(state, batch, *, graphdef, settings: StepSettings, mesh):
     """One data-parallel optimizer step of Eq. 23.
 
     Args:
-      state: {"model": nnx.State of the detector, "opt": optax state of its nnx.Param} (donated).
+      state: {"model": nnx.State of the detector, "opt": optax state of its nnx.Param[, "ema":
+        the weight average's optax.ema state]} (donated).
       batch: `device_batch` output, sharded over the mesh's "data" axis.
       graphdef: the detector's nnx.GraphDef (static; equal for equal configurations, so a new
         run of the same configuration reuses the compiled step).
@@ -111,7 +116,7 @@ def train_step(state, batch, *, graphdef, settings: StepSettings, mesh):
     model = nnx.merge(graphdef, state["model"])
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (loss, terms), grads = grad_fn(model, batch, settings.weights)
-    state = common.apply_gradients(model, grads, state["opt"], settings.optimizer)
+    state = common.apply_gradients(model, grads, state, settings.optimizer)
     scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms, **fusion(model)}
     return parallel.constrain_replicated((state, scalars), mesh)
 
@@ -125,9 +130,10 @@ def fusion(model: KeypointDetector) -> dict[str, jax.Array]:
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "settings", "mesh"))
 def eval_step(state, batch, *, graphdef, settings: StepSettings, mesh):
-    """Loss terms and keypoints (B, T, K, 4) of a validation batch."""
+    """Loss terms and keypoints (B, T, K, 4) of a validation batch (by the weight average when
+    the run keeps one)."""
     batch = parallel.constrain_batch(batch, mesh)
-    model = nnx.merge(graphdef, state["model"])
+    model = common.trained_model(graphdef, state, settings.optimizer.ema_decay)
     out = model(batch["voxels"])
     loss, terms = losses.skeleton_loss({**batch, **out}, settings.weights)
     # The median share of a heatmap's mass beyond 1.5 cells of its peak (the softplus floor).
@@ -168,8 +174,9 @@ def device_batch(
     return parallel.global_array(inputs, mesh)
 
 
-def model_of(graphdef: Any, state: Any) -> KeypointDetector:
-    return nnx.merge(graphdef, state["model"])
+def model_of(graphdef: Any, state: Any, cfg: SkelTrainConfig) -> KeypointDetector:
+    """The trained detector of a training state (`common.trained_model`)."""
+    return common.trained_model(graphdef, state, cfg.ema_decay)
 
 
 abstract_state = common.abstract_state
@@ -277,7 +284,7 @@ def train(
 
         def validate_and_draw(step: int, state: Any) -> dict[str, float]:
             scalars, keypoints = validate(eval_fn, cfg, mesh, state, val_batches)
-            _validation_figure(run, step, graphdef, state, val_batches, keypoints)
+            _validation_figure(run, step, model_of(graphdef, state, cfg), val_batches, keypoints)
             return scalars
 
         try:
@@ -308,10 +315,10 @@ def train(
     }
 
 
-def _validation_figure(run, step, graphdef, state, val_batches, val_kp) -> None:
+def _validation_figure(run, step, model, val_batches, val_kp) -> None:
     from nmjax import viz
 
-    affinity = np.asarray(model_of(graphdef, state).affinity())  # on every host: a collective
+    affinity = np.asarray(model.affinity())  # on every host: a collective
     if not parallel.is_primary():
         return
     viz.plot_keypoints(
@@ -334,7 +341,7 @@ def write_artifacts(
     Every host takes part in the computations on the (global) state; only process 0 writes.
     """
     mesh = parallel.data_mesh()
-    affinity = np.asarray(model_of(graphdef, state).affinity(), np.float32)
+    affinity = np.asarray(model_of(graphdef, state, cfg).affinity(), np.float32)
     _, keypoints = validate(make_steps(graphdef, cfg, mesh)[1], cfg, mesh, state, val_batches)
     if not parallel.is_primary():
         return

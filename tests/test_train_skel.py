@@ -39,6 +39,17 @@ def _leaves(state):
     return [np.asarray(x) for x in jax.tree.leaves(state)]
 
 
+def _restored_equal(tmp_path, abstract, step):
+    """The states of the "straight" and "resumed" runs' checkpoints at `step`, checked equal."""
+    restored = {}
+    for name in ("straight", "resumed"):
+        with common.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
+            restored[name] = ckpt.restore(abstract, step=step)[1]
+    for a, b in zip(_leaves(restored["straight"]), _leaves(restored["resumed"]), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    return restored
+
+
 def test_loss_decreases_on_fixed_batch_and_compiles_once(data_root, monkeypatch):
     from nmjax.data import pipeline
 
@@ -71,13 +82,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, mo
     resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
     assert resumed["start_step"] == 3 and resumed["step"] == 6
     graphdef, state = skel.build(cfg)
-    abstract = skel.abstract_state(state)
-    restored = {}
-    for name in ("straight", "resumed"):
-        with common.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
-            restored[name] = ckpt.restore(abstract, step=6)[1]
-    for a, b in zip(_leaves(restored["straight"]), _leaves(restored["resumed"]), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    _restored_equal(tmp_path, skel.abstract_state(state), step=6)
     assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
     # The resumed run's log reads like the straight one's: each step once, in order.
     records = common.read_metrics(tmp_path / "resumed")
@@ -133,13 +138,7 @@ def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, 
     resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
     graphdef, state = skel.build(cfg)
     assert set(state) == {"model", "opt", "ema"}
-    abstract = skel.abstract_state(state)
-    restored = {}
-    for name in ("straight", "resumed"):
-        with common.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
-            restored[name] = ckpt.restore(abstract, step=6)[1]
-    for a, b in zip(_leaves(restored["straight"]), _leaves(restored["resumed"]), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    restored = _restored_equal(tmp_path, skel.abstract_state(state), step=6)
     assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
     # The exported detector carries the average, not the last weights.
     state = restored["straight"]

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 from flax import nnx
 
 from nmjax.keypoints import coord_grid
-from nmjax.models.blocks import LEAK, Conv3D, FeatureNet, upsample_trilinear
+from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet, upsample_trilinear
 from nmjax.models.detector import VoxelDecoder
 
 
@@ -37,9 +37,9 @@ def stem_conv(net: FeatureNet, voxels: jax.Array) -> jax.Array:
 
 
 def feature_net(net: FeatureNet, voxels: jax.Array) -> jax.Array:
-    """f_feat with the plain stem; the blocks after it are the net's own. As `net(voxels)`."""
-    x = nnx.leaky_relu(net.stem.norm(stem_conv(net, voxels)), LEAK)
-    x = net.res1(net.pool1(x))
+    """f_feat with the plain stem on the full grid, then the first pool on it; the blocks after
+    it are the net's own. As `net(voxels)`."""
+    x = net.res1(stem_and_pool(net, voxels))
     x = x if net.pool2 is None else net.pool2(x)
     return net.res2(net.hourglass(x))
 
@@ -54,17 +54,33 @@ def decoder_input(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax
     return nnx.leaky_relu(dec.inp(jnp.concatenate([maps, every_frame], axis=-1)), LEAK)
 
 
+def stem_and_pool(net: FeatureNet, voxels: jax.Array) -> jax.Array:
+    """The stem (conv5 + GroupNorm + LeakyReLU) on the full grid, then the first strided pool.
+
+    voxels (B, G, G, G) -> (B, G/2, G/2, G/2, C/4), as the first two blocks of `net(voxels)`.
+    """
+    return net.pool1(nnx.leaky_relu(net.stem.norm(stem_conv(net, voxels)), LEAK))
+
+
+def conv_after_upsampling(block: ConvNormAct, x: jax.Array) -> jax.Array:
+    """The trilinear 2x upsampling, then the block on the upsampled grid, as
+    `block.after_upsampling(x)`: x (B, X, Y, Z, Ci) -> (B, 2X, 2Y, 2Z, Co)."""
+    return nnx.leaky_relu(block.norm(conv3d(block.conv, upsample_trilinear(x))), LEAK)
+
+
 def decoder(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax.Array:
-    """f_dec with the plain input conv; the blocks after it are the decoder's own.
+    """f_dec with the plain input conv and every convolution after an upsampling on the
+    upsampled grid; the blocks are the decoder's own.
 
     Returns (B, T, G, G, G) raw logits, as `dec(maps, context)`.
     """
     b, t = maps.shape[:2]
     x = decoder_input(dec, maps, context)
     x = x.reshape(b * t, *x.shape[2:])
-    if dec.upsample_first:
-        x = upsample_trilinear(x)
-    x = dec.up2(upsample_trilinear(dec.up1(x)))
+    first, second = dec.up1.layers
+    x = second(conv_after_upsampling(first, x) if dec.upsample_first else first(x))
+    first, second = dec.up2.layers
+    x = second(conv_after_upsampling(first, x))
     return dec.out(x)[..., 0].reshape(b, t, *x.shape[1:4])
 
 

@@ -88,6 +88,47 @@ def test_conv3d_same_chooses_its_form_by_width_on_cpu():
         assert jaxpr.count("window_strides=(1, 1)") == convs, ci  # 2D convolutions only
 
 
+@pytest.mark.parametrize("kernel", [1, 3, 5])
+def test_blocked_kernel_convolves_2x2x2_blocks_as_the_full_grid(kernel):
+    rng = np.random.default_rng(8)
+    x = rng.normal(size=(2, 4, 6, 2, 3)).astype(np.float32)
+    w = rng.normal(size=(kernel, kernel, kernel, 3, 2)).astype(np.float32)
+    blocked = blocks.conv3d_same(blocks.space_to_depth(jnp.asarray(x)), blocks.blocked_kernel(w))
+    expected = blocks.space_to_depth(jnp.asarray(_reference_conv_same(x, w), jnp.float32))
+    np.testing.assert_allclose(blocked, expected, atol=1e-4)
+
+
+@pytest.mark.parametrize("kernel", [2, 7])
+def test_blocked_kernel_rejects_kernels_its_three_block_taps_cannot_hold(kernel):
+    with pytest.raises(ValueError, match="odd kernel size <= 5"):
+        blocks.blocked_kernel(jnp.zeros((kernel, kernel, kernel, 1, 1)))
+
+
+@pytest.mark.parametrize("form", ["native", "per_tap", "stacked"])
+@pytest.mark.parametrize("shape", [(2, 3, 4, 2, 2), (1, 1, 2, 1, 3), (1, 4, 4, 4, 1)])
+def test_upsample_conv_equals_upsampling_then_convolving(form, shape):
+    """Against NumPy on the upsampled grid: the faces' zero padding included."""
+    rng = np.random.default_rng(9)
+    x = rng.normal(size=shape).astype(np.float32)
+    w = rng.normal(size=(3, 3, 3, shape[-1], 2)).astype(np.float32)
+    fine = np.asarray(blocks.upsample_trilinear(jnp.asarray(x)))
+    expected = blocks.space_to_depth(jnp.asarray(_reference_conv_same(fine, w), jnp.float32))
+    got = blocks.upsample_conv3d_same(jnp.asarray(x), jnp.asarray(w), form)
+    np.testing.assert_allclose(got, expected, atol=1e-4)
+
+
+def test_upsample_trilinear_clamps_at_the_faces():
+    """What `upsample_conv3d_same` relies on: half-pixel centres, edge values kept."""
+    x = jnp.arange(3.0).reshape(1, 3, 1, 1, 1)
+    up = blocks.upsample_trilinear(x)[0, :, 0, 0, 0]
+    np.testing.assert_allclose(up, [0.0, 0.25, 0.75, 1.25, 1.75, 2.0])
+
+
+def test_strided_conv_on_blocks_rejects_other_convolutions():
+    with pytest.raises(ValueError, match="only the strided 2x2x2"):
+        blocks.Conv3D(1, 1, 3, rngs=nnx.Rngs(0)).on_blocks(jnp.zeros((1, 2, 2, 2, 8)))
+
+
 def test_conv_form_rejects_unknown_names():
     x, w = jnp.zeros((1, 4, 4, 4, 1)), jnp.zeros((3, 3, 3, 1, 1))
     with pytest.raises(ValueError, match="form must be one of"):

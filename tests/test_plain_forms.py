@@ -4,7 +4,8 @@ The real modules (`VoxelDecoder`, `FeatureNet`, `Conv3D`, `keypoints.gaussian_ma
 same function as the straightforward forms, in value and in the gradient with respect to the
 parameters and every input, at tiny shapes: a change that breaks an optimisation in the model
 shows here. The whole modules are compared, so the pieces the optimisation benchmark times
-(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`) are checked inside them.
+(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`, `FeatureNet.stem_blocks`,
+`ConvNormAct.after_upsampling`) are checked inside them, and the full-grid rewrites on their own.
 """
 
 from __future__ import annotations
@@ -78,6 +79,33 @@ def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
     fast, params = on_params(blocks.FeatureNet.__call__, net)
     plain, _ = on_params(plain_forms.feature_net, net)
     assert_same_function(fast, plain, params, voxels)
+
+
+@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
+    net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(5))
+    blocks.set_conv_form(net, form)  # a 2D form: the blocked path, whatever the backend
+    net.stem.conv.bias[...] = jnp.array([0.3, -0.2])  # a bias shows up in the blocks' tiling
+    voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
+
+    def fast(net, voxels):
+        stem = blocks.norm_act_on_blocks(net.stem.norm, net.stem_blocks(voxels))
+        return net.pool1.on_blocks(stem)
+
+    fast, params = on_params(fast, net)
+    plain, _ = on_params(plain_forms.stem_and_pool, net)
+    assert_same_function(fast, plain, params, voxels)
+
+
+@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+@pytest.mark.parametrize("shape", [(2, 3, 2, 4, 3), (1, 1, 1, 1, 2)])
+def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(form, shape):
+    block = blocks.ConvNormAct(shape[-1], 4, 3, rngs=nnx.Rngs(6))
+    blocks.set_conv_form(block, form)
+    block.conv.bias[...] = jnp.array([0.5, -1.0, 2.0, 0.1])
+    fast, params = on_params(blocks.ConvNormAct.after_upsampling, block)
+    plain, _ = on_params(plain_forms.conv_after_upsampling, block)
+    assert_same_function(fast, plain, params, normal(*shape))
 
 
 @pytest.mark.parametrize("form", ["per_tap", "stacked"])

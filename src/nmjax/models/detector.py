@@ -24,7 +24,6 @@ from nmjax.models.blocks import (
     check_heatmap_stride,
     in_compute_dtype,
     set_compute_dtype,
-    upsample_trilinear,
 )
 
 
@@ -98,8 +97,10 @@ class VoxelDecoder(nnx.Module):
         b, t = maps.shape[:2]
         x = self.input_features(maps, context)
         x = x.reshape(b * t, *x.shape[2:])
-        x = self.up1(upsample_trilinear(x) if self.upsample_first else x)
-        x = self.up2(upsample_trilinear(x))
+        first, second = self.up1.layers
+        x = second(first.after_upsampling(x) if self.upsample_first else first(x))
+        first, second = self.up2.layers
+        x = second(first.after_upsampling(x))
         raw = self.out(x)[..., 0]
         return raw.reshape(b, t, *raw.shape[1:])
 

@@ -1,10 +1,13 @@
 """Each optimisation in the model against its plain formulation, forward + backward, one process.
 
 (a) decoder input conv once per crop, (b) sliced CPU 3D convolution vs XLA's, (c) FeatureNet stem
-convolving the coordinate channels once, (d) separable gaussian maps, (e) grain prefetch.
+convolving the coordinate channels once, (d) separable gaussian maps, (e) grain prefetch, (f) the
+stem and first pool in 2x2x2 blocks on the G/2 grid, (g) each convolution after a trilinear
+upsampling evaluated on the coarse grid.
 
 The fast form of every case is the model's own code (`VoxelDecoder`, `Conv3D`,
-`FeatureNet.stem_conv`, `keypoints.gaussian_maps`, the grain pipeline); the plain forms are the
+`FeatureNet.stem_conv`, `FeatureNet.stem_blocks`, `ConvNormAct.after_upsampling`,
+`keypoints.gaussian_maps`, the grain pipeline); the plain forms are the
 tests' (`tests/plain_forms.py`), where `tests/test_plain_forms.py` checks that both compute the
 same function. Each row also reports their relative gradient difference at the timed shapes.
 
@@ -79,7 +82,8 @@ def module_case(
 
 
 def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None = None) -> list:
-    """The cases (a)-(d) on the shapes of `skel_preset(data, preset)`; `batch` overrides B*T."""
+    """The cases (a)-(d), (f), (g) on the shapes of `skel_preset(data, preset)`; `batch`
+    overrides B*T."""
     plain = load_plain_forms()
     cfg = skel_preset(data, preset)
     m = cfg.model
@@ -98,7 +102,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     shape = f"B={b} T={t} g={g} K={k} C={c}"
     cases = [
         module_case(
-            "(a) decoder input conv once per crop",
+            "(a, g) whole decoder: input conv once per crop, upsampled convs coarse",
             shape,
             decoder,
             plain.decoder,
@@ -137,6 +141,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             )
         )
     net = blocks.FeatureNet(c, m.hourglass_channels, big, m.heatmap_stride, rngs=nnx.Rngs(0))
+    voxels = jnp.asarray(rng.random((bt, big, big, big)) > 0.8, jnp.float32)
     cases.append(
         module_case(
             "(c) stem coordinates convolved once",
@@ -144,9 +149,42 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             net,
             plain.stem_conv,
             blocks.FeatureNet.stem_conv,
-            jnp.asarray(rng.random((bt, big, big, big)) > 0.8, jnp.float32),
+            voxels,
         )
     )
+    on_cpu = jax.default_backend() == "cpu"  # (f) and (g) are the CPU path; off CPU: plain
+
+    def stem_and_pool_in_blocks(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
+        stem = blocks.norm_act_on_blocks(net.stem.norm, net.stem_blocks(voxels))
+        return net.pool1.on_blocks(stem)
+
+    cases.append(
+        module_case(
+            "(f) stem and first pool in 2x2x2 blocks",
+            f"({bt},{big},{big},{big}) k5 ->{c4}, pool",
+            net,
+            plain.stem_and_pool,
+            stem_and_pool_in_blocks,
+            voxels,
+            applies=on_cpu,
+        )
+    )
+    stages = [("decoder last upsampling", decoder.up2.layers[0], big // 2, c2)]
+    if decoder.upsample_first:
+        stages.insert(0, ("decoder first upsampling", decoder.up1.layers[0], g, c))
+    for label, block, n, ci in stages:
+        blocks.set_conv_form(block, blocks.cpu_conv_form((bt, n, n, n, ci), 3))  # coarse conv's
+        cases.append(
+            module_case(
+                f"(g) conv after upsampling, coarse: {label}",
+                f"({bt},{n},{n},{n},{ci}) -> x2 -> {block.conv.kernel.shape[-1]} k3",
+                block,
+                plain.conv_after_upsampling,
+                blocks.ConvNormAct.after_upsampling,
+                normal(bt, n, n, n, ci),
+                applies=on_cpu,
+            )
+        )
     keypoints = jnp.concatenate(
         [normal(b, t, k, 3, scale=0.4), jnp.asarray(rng.random((b, t, k, 1)), jnp.float32)], -1
     )
@@ -287,7 +325,7 @@ def main(argv: Sequence[str]) -> int:
     args = parser.parse_args(list(argv))
     env = environment()
     print(" ".join(f"{k}={v}" for k, v in env.items()))
-    wanted = set(args.only or "abcde")
+    wanted = set(args.only or "abcdefg")
     rows = []
     try:
         for case in optimisation_cases(args.preset, args.data, args.batch):

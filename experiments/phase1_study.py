@@ -138,6 +138,16 @@ VARIANTS: dict[str, Variant] = {
         "batch 4 crops of T = 3 frames (same frames per step)",
         ("data.batch_size=4", "data.frames=3"),
     ),
+    # A finer grid, the same network: 12^3 heatmaps (cells of 0.17 in the normalised cube
+    # against 0.25), the lever the study pointed to (the detector's localisation at G=32). One
+    # step costs about 2.7x the G=32 step, which the full-grid rewrites of the CPU step
+    # (docs/performance.md, "Full-grid layers in 2x2x2 blocks") bring inside 60 minutes for the
+    # arm's 2,200 steps.
+    "g48": Variant("grid G = 48 (12^3 heatmaps)", ("model.grid=48", "data.grid=48")),
+    "vol10_temp0.5_g48": Variant(
+        "vol10_temp0.5 + g48",
+        ("weights.vol=10.0", "model.keypoint_temperature=0.5", "model.grid=48", "data.grid=48"),
+    ),
 }
 
 

@@ -6,7 +6,9 @@ Every block takes a batch (B, X, Y, Z, C); callers fold time into the batch axis
 XLA's 3D convolution, which is 3-10x slower there than its 2D convolution: a stride-1 kernel is
 evaluated as 2D convolutions over (y, z) with x folded into the batch (`conv3d_same`); the strided
 2x2x2 "pool" is a space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul
-and a depth-to-space reshape. On GPU/TPU backends the native convolution is used.
+and a depth-to-space reshape. On GPU/TPU backends the native convolution is used. On CPU the
+thin layers at the full grid (the stem, the convolutions after the decoder's upsamplings) run
+on the half grid in 2x2x2 blocks (`blocked_kernel`, `upsample_conv3d_same`): the same function.
 
 `Conv3D.compute_dtype` ("float32" or "bfloat16", set for a whole model by `set_compute_dtype`)
 is the precision of the convolution itself: input and kernel are cast to it and the result cast
@@ -598,7 +600,7 @@ class FeatureNet(nnx.Module):
 
     def stem_blocks(self, voxels: jax.Array) -> jax.Array:
         """`space_to_depth(self.stem_conv(voxels))`, convolved on the G/2 grid in 2x2x2 blocks
-        (`blocked_kernel`): on CPU the stem's thin full-grid convolution is 2.8x faster so.
+        (`blocked_kernel`); on CPU 2.8x faster than the thin convolution on the full grid.
 
         voxels (B, G, G, G) -> (B, G/2, G/2, G/2, 8 C/4).
         """

@@ -6,7 +6,7 @@ stem and first pool in 2x2x2 blocks on the G/2 grid, (g) each convolution after 
 upsampling evaluated on the coarse grid.
 
 The fast form of every case is the model's own code (`VoxelDecoder`, `Conv3D`,
-`FeatureNet.stem_conv`, `FeatureNet.stem_blocks`, `ConvNormAct.after_upsampling`,
+`FeatureNet.stem_conv`, `FeatureNet.stem_and_pool`, `ConvNormAct.after_upsampling`,
 `keypoints.gaussian_maps`, the grain pipeline); the plain forms are the
 tests' (`tests/plain_forms.py`), where `tests/test_plain_forms.py` checks that both compute the
 same function. Each row also reports their relative gradient difference at the timed shapes.
@@ -100,6 +100,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     decoder = VoxelDecoder(2 * k + c + 3, c, m.heatmap_stride, rngs=nnx.Rngs(0))
     maps, context = normal(b, t, g, g, g, k), normal(b, g, g, g, c + k + 3)
     shape = f"B={b} T={t} g={g} K={k} C={c}"
+    on_cpu = jax.default_backend() == "cpu"  # (b), (f), (g) are the CPU path; off CPU: plain
     cases = [
         module_case(
             "(a, g) whole decoder: input conv once per crop, upsampled convs coarse",
@@ -137,7 +138,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 plain.conv3d,
                 blocks.Conv3D.__call__,
                 normal(bt, n, n, n, ci),
-                applies=jax.default_backend() == "cpu",
+                applies=on_cpu,
             )
         )
     net = blocks.FeatureNet(c, m.hourglass_channels, big, m.heatmap_stride, rngs=nnx.Rngs(0))
@@ -152,19 +153,13 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             voxels,
         )
     )
-    on_cpu = jax.default_backend() == "cpu"  # (f) and (g) are the CPU path; off CPU: plain
-
-    def stem_and_pool_in_blocks(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
-        stem = blocks.norm_act_on_blocks(net.stem.norm, net.stem_blocks(voxels))
-        return net.pool1.on_blocks(stem)
-
     cases.append(
         module_case(
             "(f) stem and first pool in 2x2x2 blocks",
             f"({bt},{big},{big},{big}) k5 ->{c4}, pool",
             net,
             plain.stem_and_pool,
-            stem_and_pool_in_blocks,
+            blocks.FeatureNet.stem_and_pool,
             voxels,
             applies=on_cpu,
         )

@@ -4,7 +4,7 @@ The real modules (`VoxelDecoder`, `FeatureNet`, `Conv3D`, `keypoints.gaussian_ma
 same function as the straightforward forms, in value and in the gradient with respect to the
 parameters and every input, at tiny shapes: a change that breaks an optimisation in the model
 shows here. The whole modules are compared, so the pieces the optimisation benchmark times
-(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`, `FeatureNet.stem_blocks`,
+(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`, `FeatureNet.stem_and_pool`,
 `ConvNormAct.after_upsampling`) are checked inside them, and the full-grid rewrites on their own.
 """
 
@@ -87,12 +87,7 @@ def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     blocks.set_conv_form(net, form)  # a 2D form: the blocked path, whatever the backend
     net.stem.conv.bias[...] = jnp.array([0.3, -0.2])  # a bias shows up in the blocks' tiling
     voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
-
-    def fast(net, voxels):
-        stem = blocks.norm_act_on_blocks(net.stem.norm, net.stem_blocks(voxels))
-        return net.pool1.on_blocks(stem)
-
-    fast, params = on_params(fast, net)
+    fast, params = on_params(blocks.FeatureNet.stem_and_pool, net)
     plain, _ = on_params(plain_forms.stem_and_pool, net)
     assert_same_function(fast, plain, params, voxels)
 

@@ -89,6 +89,14 @@ def cpu_conv_form(x_shape: tuple[int, ...], kernel_size: int) -> str:
     return "stacked" if kernel_size * x_shape[-1] <= STACKED_TAPS_MAX_CHANNELS else "per_tap"
 
 
+def _check_conv_args(name: str, k: int, form: str) -> None:
+    """Raises ValueError unless the kernel size `k` is odd and `form` is one of CONV_FORMS."""
+    if k % 2 == 0:
+        raise ValueError(f"{name} needs an odd kernel size, got {k}")
+    if form not in CONV_FORMS:
+        raise ValueError(f"{name}: form must be one of {CONV_FORMS}, got {form!r}")
+
+
 def conv3d_same(x: jax.Array, kernel: jax.Array, form: str = "auto") -> jax.Array:
     """Stride-1 'SAME' 3D convolution (cross-correlation) of x (B,X,Y,Z,Ci) with (k,k,k,Ci,Co).
 
@@ -102,10 +110,7 @@ def conv3d_same(x: jax.Array, kernel: jax.Array, form: str = "auto") -> jax.Arra
       "auto": the fastest of these for the shape on this backend (`conv_form`).
     """
     k = kernel.shape[0]
-    if k % 2 == 0:
-        raise ValueError(f"conv3d_same needs an odd kernel size, got {k}")
-    if form not in CONV_FORMS:
-        raise ValueError(f"conv3d_same: form must be one of {CONV_FORMS}, got {form!r}")
+    _check_conv_args("conv3d_same", k, form)
     if form == "auto":
         form = conv_form(x.shape, k)
     if form == "native":
@@ -121,6 +126,7 @@ def conv3d_valid(padded: jax.Array, kernel: jax.Array, form: str = "auto") -> ja
     (B, X, Y, Z, Co); `form` as in `conv3d_same`, chosen for the unpadded shape.
     """
     k = kernel.shape[0]
+    _check_conv_args("conv3d_valid", k, form)
     p = k // 2
     b, nx, ny, nz, ci = padded.shape
     nx, ny, nz = nx - 2 * p, ny - 2 * p, nz - 2 * p
@@ -612,12 +618,20 @@ class FeatureNet(nnx.Module):
         x = conv3d_same(v, blocked_kernel(wv), conv.conv_form).astype(jnp.float32) + coords
         return x + jnp.tile(conv.bias[...], 8)
 
+    def stem_and_pool(self, voxels: jax.Array) -> jax.Array:
+        """The stem (conv5 + GroupNorm + LeakyReLU) and the first strided pool: in 2x2x2 blocks
+        where convolutions run in 2D (`stem_blocks`, `Pool.on_blocks`), else on the full grid.
+
+        voxels (B, G, G, G) -> (B, G/2, G/2, G/2, C/4).
+        """
+        if runs_in_2d(self.stem.conv.conv_form):
+            return self.pool1.on_blocks(
+                norm_act_on_blocks(self.stem.norm, self.stem_blocks(voxels))
+            )
+        return self.pool1(nnx.leaky_relu(self.stem.norm(self.stem_conv(voxels)), LEAK))
+
     def __call__(self, voxels: jax.Array) -> jax.Array:
-        if runs_in_2d(self.stem.conv.conv_form):  # the stem and the first pool on blocks
-            x = self.pool1.on_blocks(norm_act_on_blocks(self.stem.norm, self.stem_blocks(voxels)))
-        else:
-            x = self.pool1(nnx.leaky_relu(self.stem.norm(self.stem_conv(voxels)), LEAK))
-        x = self.res1(x)
+        x = self.res1(self.stem_and_pool(voxels))
         if self.pool2 is not None:
             x = self.pool2(x)
         return self.res2(self.hourglass(x))

@@ -41,7 +41,7 @@ def _conv_count(fn, *args) -> int:
 
 
 @pytest.mark.parametrize("kernel", [1, 3, 5])
-@pytest.mark.parametrize("form", ["native", "per_tap", "stacked"])
+@pytest.mark.parametrize("form", ["native", *blocks.FORMS_2D])
 def test_conv3d_same_matches_numpy(kernel, form):
     conv = blocks.Conv3D(2, 3, kernel, rngs=nnx.Rngs(0))
     blocks.set_conv_form(conv, form)
@@ -67,25 +67,21 @@ def test_conv3d_same_forms_agree_in_value_and_gradient(kernel):
         assert _conv_count(conv, x, w) == convs, form
         grads = jax.grad(loss, argnums=(0, 1))(x, w, form)
         results[form] = (conv(x, w), *grads)
-    for form in ("per_tap", "stacked"):
+    for form in blocks.FORMS_2D:
         for got, want in zip(results[form], results["native"], strict=True):
             np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4, err_msg=form)
 
 
-def test_conv3d_same_chooses_its_form_by_width_on_cpu():
+def test_conv3d_same_stacks_the_taps_into_one_2d_convolution_on_cpu():
     rng = np.random.default_rng(5)
     k = 3
-    for ci, convs in (
-        (1, 1),  # the stem: taps stacked into one 2D conv
-        (blocks.STACKED_TAPS_MAX_CHANNELS // k, 1),  # still stacked
-        (blocks.STACKED_TAPS_MAX_CHANNELS // k + 1, k),  # one 2D conv per tap
-        (128, k),  # the paper's widths: per tap too, never XLA's 3D convolution on CPU
-    ):
+    for ci, co in ((1, 4), (16, 64), (128, 128)):  # the stem, a coarse decoder conv, the paper's
         x = jnp.zeros((1, 4, 4, 4, ci), jnp.float32)
-        w = jnp.asarray(rng.normal(size=(k, k, k, ci, 2)), jnp.float32)
+        w = jnp.asarray(rng.normal(size=(k, k, k, ci, co)), jnp.float32)
         jaxpr = _jaxpr(blocks.conv3d_same, x, w)
-        assert jaxpr.count("conv_general_dilated") == convs, ci
-        assert jaxpr.count("window_strides=(1, 1)") == convs, ci  # 2D convolutions only
+        assert jaxpr.count("conv_general_dilated") == 1, ci  # not one per tap
+        assert jaxpr.count("window_strides=(1, 1)") == 1, ci  # 2D, never XLA's 3D on CPU
+        assert f"{k},{k},{k * ci},{co}]" in jaxpr.replace(" ", ""), ci  # the k-deep kernel
 
 
 @pytest.mark.parametrize("kernel", [1, 3, 5])
@@ -104,7 +100,7 @@ def test_blocked_kernel_rejects_kernels_its_three_block_taps_cannot_hold(kernel)
         blocks.blocked_kernel(jnp.zeros((kernel, kernel, kernel, 1, 1)))
 
 
-@pytest.mark.parametrize("form", ["native", "per_tap", "stacked"])
+@pytest.mark.parametrize("form", ["native", *blocks.FORMS_2D])
 @pytest.mark.parametrize("shape", [(2, 3, 4, 2, 2), (1, 1, 2, 1, 3), (1, 4, 4, 4, 1)])
 def test_upsample_conv_equals_upsampling_then_convolving(form, shape):
     """Against NumPy on the upsampled grid: the faces' zero padding included."""

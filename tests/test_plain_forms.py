@@ -81,7 +81,7 @@ def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+@pytest.mark.parametrize("form", blocks.FORMS_2D)
 def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(5))
     blocks.set_conv_form(net, form)  # a 2D form: the blocked path, whatever the backend
@@ -92,7 +92,7 @@ def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+@pytest.mark.parametrize("form", blocks.FORMS_2D)
 @pytest.mark.parametrize("shape", [(2, 3, 2, 4, 3), (1, 1, 1, 1, 2)])
 def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(form, shape):
     block = blocks.ConvNormAct(shape[-1], 4, 3, rngs=nnx.Rngs(6))
@@ -103,7 +103,7 @@ def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(for
     assert_same_function(fast, plain, params, normal(*shape))
 
 
-@pytest.mark.parametrize("form", ["per_tap", "stacked"])
+@pytest.mark.parametrize("form", blocks.FORMS_2D)
 def test_conv3d_in_2d_convolutions_equals_xla_3d_convolution(form):
     conv = blocks.Conv3D(2, 3, 3, rngs=nnx.Rngs(3))
     blocks.set_conv_form(conv, form)
@@ -136,3 +136,40 @@ def test_plain_gaussian_maps_against_numpy():
     )
     got = plain_forms.gaussian_maps(jnp.asarray(kp), sigma, n)
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    ("shape", "groups"),
+    [((2, 4, 6, 2, 32), 2), ((3, 4, 4, 4, 8, 4), 1), ((2, 3, 5, 6), 3), ((1, 128, 8), 4)],
+)
+def test_group_norm_equals_flax_group_norm(shape, groups):
+    """Cell counts with and without a factor of 64 (the folded sums), the block layout
+    (B, X, Y, Z, 8, C), groups of several channels, one sample."""
+    channels = shape[-1]
+    ours = blocks.GroupNorm(channels, num_groups=groups, rngs=nnx.Rngs(0))
+    ours.scale[...] = normal(channels)
+    ours.bias[...] = normal(channels)
+    flax_norm = nnx.GroupNorm(channels, num_groups=groups, rngs=nnx.Rngs(0))
+    fast, params = on_params(blocks.GroupNorm.__call__, ours)
+    plain, _ = on_params(nnx.GroupNorm.__call__, flax_norm)
+    assert_same_function(fast, plain, params, 1.5 * normal(*shape) + 0.7)
+
+
+def test_group_norm_against_numpy():
+    x = np.asarray(3.0 * normal(2, 4, 4, 4, 6) - 2.0, np.float64)
+    scale, bias = np.linspace(0.5, 2.0, 6), np.linspace(-1.0, 1.0, 6)
+    groups = x.reshape(2, -1, 3, 2)  # (sample, cell, group, channel in group)
+    mean = groups.mean(axis=(1, 3), keepdims=True)
+    var = groups.var(axis=(1, 3), keepdims=True)
+    expected = ((groups - mean) / np.sqrt(var + 1e-6)).reshape(x.shape) * scale + bias
+    got = blocks.group_norm(
+        jnp.asarray(x, jnp.float32),
+        jnp.asarray(scale, jnp.float32),
+        jnp.asarray(bias, jnp.float32),
+        3,
+    )
+    np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="4 groups do not divide 6 channels"):
+        blocks.group_norm(jnp.asarray(x, jnp.float32), scale, bias, 4)
+    with pytest.raises(ValueError, match="no mask"):
+        blocks.GroupNorm(6, num_groups=3, rngs=nnx.Rngs(0))(jnp.asarray(x), mask=x > 0)

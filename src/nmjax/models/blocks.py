@@ -17,6 +17,7 @@ back to float32, so parameters, normalisation and everything downstream stay flo
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -38,17 +39,117 @@ _NDHWC = ("NDHWC", "DHWIO", "NDHWC")
 # On CPU, stride-1 convolutions run as 2D convolutions over (Y, Z) with X folded into the batch
 # axis: with YNNPACK's convolutions switched off (nmjax/__init__.py), XLA's CPU 2D convolution
 # beats its 3D convolution at every shape of the detector, forward + backward, by 2.5-15x (1 to
-# 128 channels, 4^3 to 32^3 grids; docs/performance.md, "CPU convolutions"). The price is memory:
-# the per-tap form keeps k shifted copies of its input for the kernel gradient (about 2x the
-# native form's temporaries at the paper's widths).
-# Thin inputs (k * channels up to this) stack their k depth taps on the channel axis: one 2D
-# convolution with a k-times deeper kernel and one kernel gradient instead of k, 1.2-2.3x faster
-# than one 2D convolution per tap up to 16 channels at k = 3; at 16 channels the two are even.
-STACKED_TAPS_MAX_CHANNELS = 48
+# 128 channels, 4^3 to 32^3 grids; docs/performance.md, "CPU convolutions"). The k taps along X
+# are stacked on the channel axis: one 2D convolution with a k-times deeper kernel. Against one
+# 2D convolution per tap it is as fast at the cpu preset's widths and makes the phase-1 step at
+# the paper's channels 1.13x faster (docs/performance.md, "GroupNorm and stacked taps"); a k-times
+# wider output (the taps' kernels side by side, the results shifted and summed) was faster for
+# single convolutions of few output channels but slower in the step.
 _NHWC = ("NHWC", "HWIO", "NHWC")
 COMPUTE_DTYPES = ("float32", "bfloat16")
 # G / g: f_feat pools twice (4) or once (2) before the hourglass; f_dec upsamples as often.
 HEATMAP_STRIDES = (2, 4)
+
+
+def cell_sums(x: jax.Array) -> jax.Array:
+    """(N, S, C) -> (N, C): the sum over the S cells of each channel.
+
+    XLA's CPU reduction over a middle axis keeps only the C minor values per row in flight;
+    folding up to 64 consecutive cells into the minor axis first (one reduction over S / f rows
+    of f C values, then one over f) is 1.3-1.6x faster forward + backward in GroupNorm, and its
+    float32 sums are closer to float64 than a single long reduction.
+    """
+    n, s, c = x.shape
+    fold = math.gcd(s, 64)
+    return jnp.sum(x.reshape(n, s // fold, fold * c), axis=1).reshape(n, fold, c).sum(axis=1)
+
+
+def _group_stats(flat: jax.Array, groups: int, eps: float) -> tuple[jax.Array, jax.Array]:
+    """Mean and 1 / sqrt(var + eps), each (N, groups), of flat (N, S, C)."""
+    n, _, c = flat.shape
+    count = flat.shape[1] * (c // groups)
+    mean = cell_sums(flat).reshape(n, groups, -1).sum(-1) / count
+    mean_sq = cell_sums(flat * flat).reshape(n, groups, -1).sum(-1) / count
+    return mean, jax.lax.rsqrt(jnp.maximum(mean_sq - mean * mean, 0.0) + eps)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
+def group_norm(
+    x: jax.Array, scale: jax.Array, bias: jax.Array, groups: int, eps: float = 1e-6
+) -> jax.Array:
+    """GroupNorm (Wu & He 2018; the detector's norm, paper Fig. 9) of channels-last x.
+
+    Args:
+      x: (N, ..., C); statistics per sample over every cell (the middle axes) and the C / groups
+        channels of each group.
+      scale, bias: (C,) per-channel affine parameters.
+      groups: number of groups, dividing C.
+      eps: added to the variance.
+
+    Returns:
+      (N, ..., C) (x - mean) / sqrt(var + eps) * scale + bias, var = E[x^2] - E[x]^2 (floored
+      at 0), as `flax.nnx.GroupNorm` computes it.
+
+    Every reduction is a per-channel sum (`cell_sums`) and the rest is one multiply-add per
+    element with per-(sample, channel) coefficients, forward and backward (a hand-written VJP:
+    XLA fuses the autodiff form's five reductions each with a recomputation of the forward and
+    of the incoming gradient, re-reading the inputs in every one of them).
+    """
+    return _group_norm_fwd(x, scale, bias, groups, eps)[0]
+
+
+def _group_norm_fwd(x, scale, bias, groups, eps):
+    n, c = x.shape[0], x.shape[-1]
+    if c % groups:
+        raise ValueError(f"group_norm: {groups} groups do not divide {c} channels")
+    flat = x.reshape(n, -1, c)
+    mean, inv = _group_stats(flat, groups, eps)
+    a = jnp.repeat(inv, c // groups, axis=1) * scale  # (N, C)
+    b = bias - jnp.repeat(mean, c // groups, axis=1) * a
+    return (flat * a[:, None] + b[:, None]).reshape(x.shape), (x, scale, mean, inv)
+
+
+def _group_norm_bwd(groups, eps, residuals, g):
+    del eps
+    x, scale, mean, inv = residuals
+    n, c = x.shape[0], x.shape[-1]
+    per = c // groups
+    flat, g = x.reshape(n, -1, c), g.reshape(n, -1, c)
+    count = flat.shape[1] * per
+    sum_g = cell_sums(g)  # (N, C)
+    mean_c, inv_c = jnp.repeat(mean, per, axis=1), jnp.repeat(inv, per, axis=1)
+    sum_g_xhat = inv_c * (cell_sums(g * flat) - mean_c * sum_g)  # sum of g * normalised x
+    # d/dx of the normalisation: inv (g scale - mean over the group of g scale - xhat * mean
+    # over the group of g scale xhat), written as g a + x b + d with (N, C) coefficients.
+    p = (scale * sum_g).reshape(n, groups, per).sum(-1) / count  # (N, groups)
+    q = (scale * sum_g_xhat).reshape(n, groups, per).sum(-1) / count
+    a = inv_c * scale
+    b = jnp.repeat(-inv * inv * q, per, axis=1)
+    d = jnp.repeat(inv * (inv * q * mean - p), per, axis=1)
+    dx = g * a[:, None] + flat * b[:, None] + d[:, None]
+    return dx.reshape(x.shape), sum_g_xhat.sum(0), sum_g.sum(0)
+
+
+group_norm.defvjp(_group_norm_fwd, _group_norm_bwd)
+
+
+class GroupNorm(nnx.GroupNorm):
+    """`flax.nnx.GroupNorm` (same parameters, same function: statistics over every axis but the
+    first and the last) evaluated by `group_norm`. On CPU its forward + backward (with the
+    LeakyReLU after it) is 1.3x faster than flax's at the cpu preset's shapes and 2.7-4x at the
+    paper's channels, where flax's reductions took a tenth of the phase-1 step."""
+
+    def __call__(self, x: jax.Array, *, mask: jax.Array | None = None) -> jax.Array:
+        if (
+            mask is not None
+            or self.reduction_axes is not None
+            or not (self.use_scale and self.use_bias)
+        ):
+            raise ValueError(
+                "nmjax GroupNorm: no mask or reduction_axes, scale and bias on (flax.nnx.GroupNorm "
+                "takes the other settings)"
+            )
+        return group_norm(x, self.scale[...], self.bias[...], self.num_groups, self.epsilon)
 
 
 def check_heatmap_stride(stride: int) -> None:
@@ -72,21 +173,13 @@ def in_compute_dtype(name: str, *arrays: jax.Array) -> tuple[jax.Array, ...]:
     return tuple(a.astype(jnp.dtype(name)) for a in arrays)
 
 
-CONV_FORMS = ("auto", "native", "per_tap", "stacked")
+FORMS_2D = ("per_tap", "stacked")
+CONV_FORMS = ("auto", "native", *FORMS_2D)
 
 
-def conv_form(x_shape: tuple[int, ...], kernel_size: int) -> str:
-    """The form `conv3d_same(form="auto")` takes for an input of `x_shape` (B, X, Y, Z, Ci):
-    "native" on GPU/TPU, `cpu_conv_form` on CPU."""
-    if jax.default_backend() != "cpu":
-        return "native"
-    return cpu_conv_form(x_shape, kernel_size)
-
-
-def cpu_conv_form(x_shape: tuple[int, ...], kernel_size: int) -> str:
-    """The fastest 2D form on CPU: "stacked" when k * Ci <= `STACKED_TAPS_MAX_CHANNELS`, else
-    "per_tap"."""
-    return "stacked" if kernel_size * x_shape[-1] <= STACKED_TAPS_MAX_CHANNELS else "per_tap"
+def conv_form() -> str:
+    """The form `conv3d_same(form="auto")` takes: "native" on GPU/TPU, "stacked" on CPU."""
+    return "native" if jax.default_backend() != "cpu" else "stacked"
 
 
 def _check_conv_args(name: str, k: int, form: str) -> None:
@@ -107,12 +200,12 @@ def conv3d_same(x: jax.Array, kernel: jax.Array, form: str = "auto") -> jax.Arra
         data), summed.
       "stacked": the k shifted planes concatenated on the channel axis into a single 2D
         convolution with a k-times deeper kernel.
-      "auto": the fastest of these for the shape on this backend (`conv_form`).
+      "auto": the fastest of these on this backend (`conv_form`).
     """
     k = kernel.shape[0]
     _check_conv_args("conv3d_same", k, form)
     if form == "auto":
-        form = conv_form(x.shape, k)
+        form = conv_form()
     if form == "native":
         return jax.lax.conv_general_dilated(x, kernel, (1, 1, 1), "SAME", dimension_numbers=_NDHWC)
     p = k // 2
@@ -123,7 +216,7 @@ def conv3d_valid(padded: jax.Array, kernel: jax.Array, form: str = "auto") -> ja
     """'VALID' 3D convolution (cross-correlation) of an already padded input.
 
     padded (B, X + k - 1, Y + k - 1, Z + k - 1, Ci) with kernel (k, k, k, Ci, Co), odd k, ->
-    (B, X, Y, Z, Co); `form` as in `conv3d_same`, chosen for the unpadded shape.
+    (B, X, Y, Z, Co); `form` as in `conv3d_same`.
     """
     k = kernel.shape[0]
     _check_conv_args("conv3d_valid", k, form)
@@ -131,22 +224,52 @@ def conv3d_valid(padded: jax.Array, kernel: jax.Array, form: str = "auto") -> ja
     b, nx, ny, nz, ci = padded.shape
     nx, ny, nz = nx - 2 * p, ny - 2 * p, nz - 2 * p
     if form == "auto":
-        form = conv_form((b, nx, ny, nz, ci), k)
+        form = conv_form()
     if form == "native":
         return jax.lax.conv_general_dilated(
             padded, kernel, (1, 1, 1), "VALID", dimension_numbers=_NDHWC
         )
-    planes = [padded[:, a : a + nx] for a in range(k)]  # (B, X, Y + 2p, Z + 2p, Ci) each
-    kernels = list(kernel)  # (k, k, Ci, Co) each
     if form == "stacked":
-        planes = [jnp.concatenate(planes, axis=-1)]  # channel a * Ci + c is tap a, channel c
+        planes = [stacked_planes(padded, k)]
         kernels = [jnp.moveaxis(kernel, 0, 2).reshape(k, k, k * ci, -1)]
+    else:
+        planes = [padded[:, a : a + nx] for a in range(k)]  # (B, X, Y + 2p, Z + 2p, Ci) each
+        kernels = list(kernel)  # (k, k, Ci, Co) each
     out = None
     for plane, w in zip(planes, kernels, strict=True):
         plane = plane.reshape(b * nx, ny + 2 * p, nz + 2 * p, plane.shape[-1])
         y = jax.lax.conv_general_dilated(plane, w, (1, 1), "VALID", dimension_numbers=_NHWC)
         out = y if out is None else out + y
     return out.reshape(b, nx, ny, nz, kernel.shape[-1])
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
+def stacked_planes(padded: jax.Array, k: int) -> jax.Array:
+    """The k planes padded[:, a : a + X] (X = padded's first side - k + 1) concatenated on the
+    channel axis: (B, X + k - 1, Y, Z, C) -> (B, X, Y, Z, k C), channel a * C + c.
+
+    Differentiated by adding the k channel slices of the cotangent into one zero tensor in
+    place: the transpose of k slices is k full-size padded tensors, which XLA sums inside every
+    consumer of the input gradient, re-reading all k in each of them (the bias and norm gradient
+    reductions before it).
+    """
+    nx = padded.shape[1] - k + 1
+    return jnp.concatenate([padded[:, a : a + nx] for a in range(k)], axis=-1)
+
+
+def _stacked_planes_fwd(padded: jax.Array, k: int) -> tuple[jax.Array, tuple[int, ...]]:
+    return stacked_planes(padded, k), padded.shape
+
+
+def _stacked_planes_bwd(k: int, shape: tuple[int, ...], g: jax.Array) -> tuple[jax.Array]:
+    nx, c = shape[1] - k + 1, shape[-1]
+    out = jnp.zeros(shape, g.dtype)
+    for a in range(k):
+        out = out.at[:, a : a + nx].add(g[..., a * c : (a + 1) * c])
+    return (out,)
+
+
+stacked_planes.defvjp(_stacked_planes_fwd, _stacked_planes_bwd)
 
 
 def coord_conv3d_same(kernel: jax.Array, n: int) -> jax.Array:
@@ -206,7 +329,7 @@ def depth_to_space(x: jax.Array) -> jax.Array:
 def runs_in_2d(form: str) -> bool:
     """Whether a `Conv3D` with `conv_form` = `form` runs as 2D convolutions on this backend, and
     so takes the full-grid rewrites above ("native" and non-CPU backends keep the plain layers)."""
-    return form in ("per_tap", "stacked") or (form == "auto" and jax.default_backend() == "cpu")
+    return form in FORMS_2D or (form == "auto" and jax.default_backend() == "cpu")
 
 
 def _block_taps(k: int) -> np.ndarray:
@@ -409,7 +532,7 @@ class Conv3D(nnx.Module):
         return (x @ w.reshape(-1, w.shape[-1])).astype(jnp.float32) + self.bias[...]
 
 
-def norm_act_on_blocks(norm: nnx.GroupNorm, blocks: jax.Array) -> jax.Array:
+def norm_act_on_blocks(norm: GroupNorm, blocks: jax.Array) -> jax.Array:
     """GroupNorm + LeakyReLU of a tensor in 2x2x2 blocks (B, X, Y, Z, 8 C): the same statistics
     as on the fine grid, since a group's cells are the same cells in either layout."""
     shape = blocks.shape
@@ -442,7 +565,7 @@ class ConvNormAct(nnx.Module):
         self, in_ch: int, out_ch: int, kernel: int = 3, stride: int = 1, *, rngs: nnx.Rngs
     ):
         self.conv = Conv3D(in_ch, out_ch, kernel, stride, rngs=rngs)
-        self.norm = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+        self.norm = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)
@@ -450,6 +573,9 @@ class ConvNormAct(nnx.Module):
     def after_upsampling(self, x: jax.Array) -> jax.Array:
         """`self(upsample_trilinear(x))` for a stride-1 k=3 block; where convolutions run in 2D,
         convolved on the coarse grid (`upsample_conv3d_same`) without forming the upsampled one.
+        The norm follows on the fine layout: its backward then reads the incoming gradient in
+        order (on the blocks, each of its reductions read it transposed; 1.2x slower at the
+        paper's channels).
 
         x (B, X, Y, Z, Ci) -> (B, 2X, 2Y, 2Z, Co).
         """
@@ -457,9 +583,8 @@ class ConvNormAct(nnx.Module):
         if not runs_in_2d(conv.conv_form) or conv.kernel_size != 3 or conv.stride != 1:
             return self(upsample_trilinear(x))
         x, w = in_compute_dtype(conv.compute_dtype, x, conv.kernel[...])
-        y = upsample_conv3d_same(x, w, conv.conv_form).astype(jnp.float32)
-        y = norm_act_on_blocks(self.norm, y + jnp.tile(conv.bias[...], 8))
-        return depth_to_space(y)
+        y = depth_to_space(upsample_conv3d_same(x, w, conv.conv_form).astype(jnp.float32))
+        return nnx.leaky_relu(self.norm(y + conv.bias[...]), LEAK)
 
 
 class ResBlock(nnx.Module):
@@ -468,7 +593,7 @@ class ResBlock(nnx.Module):
     def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
         self.conv1 = ConvNormAct(in_ch, out_ch, 3, rngs=rngs)
         self.conv2 = Conv3D(out_ch, out_ch, 3, rngs=rngs)
-        self.norm2 = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+        self.norm2 = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
         self.skip = Conv3D(in_ch, out_ch, 1, rngs=rngs) if in_ch != out_ch else None
 
     def __call__(self, x: jax.Array) -> jax.Array:
@@ -496,7 +621,7 @@ class Upsample(nnx.Module):
 
     def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
         self.conv = Conv3D(in_ch, out_ch, 2, 2, transpose=True, rngs=rngs)
-        self.norm = nnx.GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+        self.norm = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)

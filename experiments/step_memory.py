@@ -1,16 +1,16 @@
 """Memory of the phase-1 train step without running it: compile only, report memory_analysis().
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/step_memory.py --preset default \
-        --data synth-hand --conv auto per_tap native
+        --data synth-hand --conv auto per_tap stacked native
 
 For each 3D-convolution form, the compiled step's temporary / argument / output bytes at the
 preset's shapes (B, T and anything else through --set), e.g. the paper's B=3, T=10, G=64, C=128,
 K=28, whose step needs more memory than a development machine has. `--conv` picks how
 `blocks.conv3d_same` evaluates stride-1 convolutions on CPU:
 
-- auto: the code's choice (on CPU: taps stacked for thin inputs, one 2D convolution per tap
-  otherwise);
-- per_tap: one 2D convolution per depth tap for every input, whatever its width;
+- auto: the code's choice (`blocks.conv_form`: "stacked" on CPU);
+- per_tap: one 2D convolution per depth tap (k shifted inputs, k kernel gradients);
+- stacked: the k depth taps stacked on the channel axis, one 2D convolution;
 - native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
 
 Writes nothing; prints one line per form (add --out FILE.json for the numbers).
@@ -32,7 +32,7 @@ from nmjax.models import blocks
 from nmjax.models.detector import KeypointDetector
 from nmjax.train import common, parallel, skel
 
-FORMS = ("auto", "per_tap", "native")
+FORMS = blocks.CONV_FORMS
 
 
 def step_memory(cfg, form: str) -> dict:

@@ -129,7 +129,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     ):
         conv = blocks.Conv3D(ci, co, ks, rngs=nnx.Rngs(0))
         # The form the code takes on CPU, whatever the backend this runs on.
-        blocks.set_conv_form(conv, "stacked")
+        blocks.set_conv_form(conv, blocks.CPU_CONV_FORM)
         cases.append(
             module_case(
                 f"(b) sliced 3D conv: {label}",
@@ -168,7 +168,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     if decoder.upsample_first:
         stages.insert(0, ("decoder first upsampling", decoder.up1.layers[0], g, c))
     for label, block, n, ci in stages:
-        blocks.set_conv_form(block, "stacked")  # the coarse conv's CPU form
+        blocks.set_conv_form(block, blocks.CPU_CONV_FORM)  # the coarse conv's
         cases.append(
             module_case(
                 f"(g) conv after upsampling, coarse: {label}",

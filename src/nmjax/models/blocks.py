@@ -175,11 +175,12 @@ def in_compute_dtype(name: str, *arrays: jax.Array) -> tuple[jax.Array, ...]:
 
 FORMS_2D = ("per_tap", "stacked")
 CONV_FORMS = ("auto", "native", *FORMS_2D)
+CPU_CONV_FORM = "stacked"  # what "auto" takes on CPU (the comment above)
 
 
 def conv_form() -> str:
-    """The form `conv3d_same(form="auto")` takes: "native" on GPU/TPU, "stacked" on CPU."""
-    return "native" if jax.default_backend() != "cpu" else "stacked"
+    """The form `conv3d_same(form="auto")` takes: "native" on GPU/TPU, `CPU_CONV_FORM` on CPU."""
+    return "native" if jax.default_backend() != "cpu" else CPU_CONV_FORM
 
 
 def _check_conv_args(name: str, k: int, form: str) -> None:
@@ -329,7 +330,7 @@ def depth_to_space(x: jax.Array) -> jax.Array:
 def runs_in_2d(form: str) -> bool:
     """Whether a `Conv3D` with `conv_form` = `form` runs as 2D convolutions on this backend, and
     so takes the full-grid rewrites above ("native" and non-CPU backends keep the plain layers)."""
-    return form in FORMS_2D or (form == "auto" and jax.default_backend() == "cpu")
+    return (conv_form() if form == "auto" else form) in FORMS_2D
 
 
 def _block_taps(k: int) -> np.ndarray:

@@ -41,7 +41,7 @@ def _conv_count(fn, *args) -> int:
 
 
 @pytest.mark.parametrize("kernel", [1, 3, 5])
-@pytest.mark.parametrize("form", ["native", *blocks.FORMS_2D])
+@pytest.mark.parametrize("form", ["native", *blocks.CPU_FORMS])
 def test_conv3d_same_matches_numpy(kernel, form):
     conv = blocks.Conv3D(2, 3, kernel, rngs=nnx.Rngs(0))
     blocks.set_conv_form(conv, form)
@@ -62,26 +62,82 @@ def test_conv3d_same_forms_agree_in_value_and_gradient(kernel):
         return jnp.sum(blocks.conv3d_same(x, w, form) * cotangent)
 
     results = {}
-    for form, convs in (("native", 1), ("per_tap", kernel), ("stacked", 1)):
+    winograd_convs = 0 if kernel == 3 else 1  # k=5 falls back to the stacked form
+    for form, convs in (
+        ("native", 1),
+        ("per_tap", kernel),
+        ("stacked", 1),
+        ("winograd", winograd_convs),
+    ):
         conv = functools.partial(blocks.conv3d_same, form=form)
         assert _conv_count(conv, x, w) == convs, form
         grads = jax.grad(loss, argnums=(0, 1))(x, w, form)
         results[form] = (conv(x, w), *grads)
-    for form in blocks.FORMS_2D:
+    for form in blocks.CPU_FORMS:
         for got, want in zip(results[form], results["native"], strict=True):
-            np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4, err_msg=form)
+            if form == "winograd" and kernel == 3:  # about 1e-5 of the largest value
+                atol = 2e-5 * float(jnp.max(jnp.abs(want)))
+                np.testing.assert_allclose(got, want, atol=atol, err_msg=form)
+            else:
+                np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-4, err_msg=form)
 
 
 def test_conv3d_same_stacks_the_taps_into_one_2d_convolution_on_cpu():
+    """Where "auto" does not take Winograd's form on CPU (grids under WINOGRAD_MIN_SIDE, k=5,
+    bfloat16), one 2D convolution with the k taps stacked, never XLA's 3D convolution."""
     rng = np.random.default_rng(5)
-    k = 3
-    for ci, co in ((1, 4), (16, 64), (128, 128)):  # the stem, a coarse decoder conv, the paper's
-        x = jnp.zeros((1, 4, 4, 4, ci), jnp.float32)
-        w = jnp.asarray(rng.normal(size=(k, k, k, ci, co)), jnp.float32)
+    side = blocks.WINOGRAD_MIN_SIDE
+    cases = [(3, 1, 4, jnp.float32, 4), (3, 16, 64, jnp.float32, 4), (3, 128, 128, jnp.float32, 4)]
+    cases += [(5, 1, 4, jnp.float32, side), (3, 8, 8, jnp.bfloat16, side)]
+    for k, ci, co, dtype, n in cases:  # the stem, a coarse decoder conv, the paper's widths
+        x = jnp.zeros((1, n, n, n, ci), dtype)
+        w = jnp.asarray(rng.normal(size=(k, k, k, ci, co)), dtype)
         jaxpr = _jaxpr(blocks.conv3d_same, x, w)
         assert jaxpr.count("conv_general_dilated") == 1, ci  # not one per tap
         assert jaxpr.count("window_strides=(1, 1)") == 1, ci  # 2D, never XLA's 3D on CPU
         assert f"{k},{k},{k * ci},{co}]" in jaxpr.replace(" ", ""), ci  # the k-deep kernel
+
+
+def test_conv3d_same_takes_winograds_form_on_cpu_for_float32_3x3x3_on_large_grids():
+    side = blocks.WINOGRAD_MIN_SIDE
+    x = jnp.zeros((2, side, side + 2, side, 16), jnp.float32)
+    w = jnp.zeros((3, 3, 3, 16, 32), jnp.float32)
+    jaxpr = _jaxpr(blocks.conv3d_same, x, w)
+    assert "conv_general_dilated" not in jaxpr
+    # 216 tile positions, each one matmul over B * tiles = 2 * 2 * 3 * 2 rows
+    assert "f32[216,24,32]" in jaxpr.replace(" ", "")
+    assert _conv_count(blocks.conv3d_same, x[:, :, :4], w) == 1  # a side under the minimum
+
+
+@pytest.mark.parametrize("shape", [(2, 8, 8, 8, 3), (1, 9, 12, 5, 2), (1, 1, 2, 3, 1)])
+def test_winograd_conv_matches_float64_in_value_and_gradient(shape):
+    """F(4x4x4, 3x3x3) in float32 against the direct sum in float64: within 2e-5 of the
+    largest value (the interpolation points +-2 cost digits the direct forms keep)."""
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=shape)
+    w = rng.normal(size=(3, 3, 3, shape[-1], 4))
+    cotangent = rng.normal(size=(*shape[:-1], 4))
+    padded = np.pad(x, ((0, 0), (1, 1), (1, 1), (1, 1), (0, 0)))
+
+    def loss(x, w):
+        return jnp.sum(blocks.winograd_conv3d_valid(x, w) * cotangent)
+
+    padded32, w32 = jnp.asarray(padded, jnp.float32), jnp.asarray(w, jnp.float32)
+    got = blocks.winograd_conv3d_valid(padded32, w32)
+    got_grads = jax.grad(loss, (0, 1))(padded32, w32)
+    want = _reference_conv_same(x, w)
+    np.testing.assert_allclose(got, want, atol=2e-5 * np.abs(want).max())
+    # the gradient of sum(conv * cotangent): wrt the padded input a correlation of the
+    # cotangent with the flipped kernel, wrt the kernel the windows of the input
+    grad_x = np.zeros_like(padded)
+    grad_w = np.zeros_like(w)
+    nx, ny, nz = shape[1:4]
+    for a, b, c in np.ndindex(3, 3, 3):
+        window = padded[:, a : a + nx, b : b + ny, c : c + nz]
+        grad_x[:, a : a + nx, b : b + ny, c : c + nz] += cotangent @ w[a, b, c].T
+        grad_w[a, b, c] = np.einsum("nxyzi,nxyzo->io", window, cotangent)
+    for g, want_g in zip(got_grads, (grad_x, grad_w), strict=True):
+        np.testing.assert_allclose(g, want_g, atol=2e-5 * np.abs(want_g).max())
 
 
 @pytest.mark.parametrize("kernel", [1, 3, 5])
@@ -100,7 +156,7 @@ def test_blocked_kernel_rejects_kernels_its_three_block_taps_cannot_hold(kernel)
         blocks.blocked_kernel(jnp.zeros((kernel, kernel, kernel, 1, 1)))
 
 
-@pytest.mark.parametrize("form", ["native", *blocks.FORMS_2D])
+@pytest.mark.parametrize("form", ["native", *blocks.CPU_FORMS])
 @pytest.mark.parametrize("shape", [(2, 3, 4, 2, 2), (1, 1, 2, 1, 3), (1, 4, 4, 4, 1)])
 def test_upsample_conv_equals_upsampling_then_convolving(form, shape):
     """Against NumPy on the upsampled grid: the faces' zero padding included."""
@@ -339,7 +395,9 @@ def test_cpu_convolutions_and_reductions_do_not_go_through_ynnpack():
         pytest.skip("a CPU backend option")
     assert nmjax.YNN_CONVOLUTION_FLAG in os.environ["XLA_FLAGS"]
     x, w = jnp.ones((2, 16, 16, 16, 4)), jnp.ones((3, 3, 3, 4, 4))
-    grad = jax.jit(jax.grad(lambda w: jnp.sum(blocks.conv3d_same(x, w)))).lower(w).compile()
+    form = blocks.CPU_FALLBACK_FORM  # "auto" takes Winograd's form here: matmuls, no convolution
+    conv = functools.partial(blocks.conv3d_same, form=form)
+    grad = jax.jit(jax.grad(lambda w: jnp.sum(conv(x, w)))).lower(w).compile()
     batch_sum = jax.jit(lambda x: jnp.sum(x * 1.5, axis=0)).lower(x).compile()
     for compiled, op in ((grad, "convolution("), (batch_sum, "reduce(")):
         text = compiled.as_text()

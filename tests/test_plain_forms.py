@@ -81,7 +81,7 @@ def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", blocks.FORMS_2D)
+@pytest.mark.parametrize("form", blocks.CPU_FORMS)
 def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(5))
     blocks.set_conv_form(net, form)  # a 2D form: the blocked path, whatever the backend
@@ -92,7 +92,7 @@ def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", blocks.FORMS_2D)
+@pytest.mark.parametrize("form", blocks.CPU_FORMS)
 @pytest.mark.parametrize("shape", [(2, 3, 2, 4, 3), (1, 1, 1, 1, 2)])
 def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(form, shape):
     block = blocks.ConvNormAct(shape[-1], 4, 3, rngs=nnx.Rngs(6))
@@ -103,7 +103,7 @@ def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(for
     assert_same_function(fast, plain, params, normal(*shape))
 
 
-@pytest.mark.parametrize("form", blocks.FORMS_2D)
+@pytest.mark.parametrize("form", blocks.CPU_FORMS)
 def test_conv3d_in_2d_convolutions_equals_xla_3d_convolution(form):
     conv = blocks.Conv3D(2, 3, 3, rngs=nnx.Rngs(3))
     blocks.set_conv_form(conv, form)

@@ -8,9 +8,11 @@ preset's shapes (B, T and anything else through --set), e.g. the paper's B=3, T=
 K=28, whose step needs more memory than a development machine has. `--conv` picks how
 `blocks.conv3d_same` evaluates stride-1 convolutions on CPU:
 
-- auto: the code's choice (`blocks.conv_form`: "stacked" on CPU);
+- auto: the code's choice (`blocks.conv_form`: "winograd" on CPU, stacked taps where it does not
+  apply);
 - per_tap: one 2D convolution per depth tap (k shifted inputs, k kernel gradients);
 - stacked: the k depth taps stacked on the channel axis, one 2D convolution;
+- winograd: F(4x4x4, 3x3x3) for every float32 3x3x3 kernel, stacked taps for the others;
 - native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
 
 Writes nothing; prints one line per form (add --out FILE.json for the numbers).

@@ -2,9 +2,11 @@
 
 Every block takes a batch (B, X, Y, Z, C); callers fold time into the batch axis.
 
-`Conv3D` computes exactly the 3D convolution but, on CPU and for inputs of few channels, not with
-XLA's 3D convolution, which is 3-10x slower there than its 2D convolution: a stride-1 kernel is
-evaluated as 2D convolutions over (y, z) with x folded into the batch (`conv3d_same`); the strided
+`Conv3D` computes exactly the 3D convolution but, on CPU, not with XLA's 3D convolution, which is
+3-10x slower there than its 2D convolution: a float32 3x3x3 kernel on a grid of side 8 or more is
+evaluated by Winograd's F(4x4x4, 3x3x3) (`winograd_conv3d_valid`, 1/8 of the multiply-adds as
+batched matmuls), any other stride-1 kernel as 2D convolutions over (y, z) with x folded into the
+batch (`conv3d_same`); the strided
 2x2x2 "pool" is a space-to-depth reshape and a matmul, the 2x2x2 transposed convolution a matmul
 and a depth-to-space reshape. On GPU/TPU backends the native convolution is used. On CPU the
 thin layers at the full grid (the stem, the convolutions after the decoder's upsamplings) run

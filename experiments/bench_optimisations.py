@@ -168,7 +168,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     if decoder.upsample_first:
         stages.insert(0, ("decoder first upsampling", decoder.up1.layers[0], g, c))
     for label, block, n, ci in stages:
-        blocks.set_conv_form(block, blocks.CPU_CONV_FORM)  # the coarse conv's
+        blocks.set_conv_form(block, blocks.CPU_CONV_FORM)  # the coarse conv's CPU form
         cases.append(
             module_case(
                 f"(g) conv after upsampling, coarse: {label}",

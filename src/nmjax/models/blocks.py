@@ -415,8 +415,9 @@ def winograd_conv3d_valid(padded: jax.Array, kernel: jax.Array) -> jax.Array:
     `einsum`), and transformed back by A^T. It does 1/8 of the direct form's multiply-adds in
     the matmuls, at the price of transformed tiles 3.4x the input's size. The interpolation
     points +-2 make it less exact than the direct sum: float32 results are about 1e-5 off
-    relative to the largest output, against 1e-7 for the direct forms. Differentiated by
-    autodiff (every step is linear: the gradients are the transposed transforms and matmuls).
+    relative to the largest output, against 1e-7 for the direct forms. Every step is linear,
+    so the gradients are the transposed transforms and matmuls: autodiff's, except for the
+    input transform's hand-written VJP (`_winograd_input_transform`).
     """
     m = WINOGRAD_TILE
     b, *sides, ci = padded.shape

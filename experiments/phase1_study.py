@@ -6,8 +6,7 @@ wall-clock budget, scored on the standard test split.
     .venv/bin/python experiments/phase1_study.py --report      # rewrite the table only
 
 Each call trains one variant (`VARIANTS`) into `runs/study/<data>-<variant>-s<seed>-<budget>`
-with the `cpu` preset as it was before the study (without `config.CPU_STUDY_CHANGES`, so
-every row has the same base) plus the variant's overrides, stopped by `time_limit_minutes` (so every
+with the `cpu` preset plus the variant's overrides, stopped by `time_limit_minutes` (so every
 variant gets the same wall time, whatever its step cost; the preset's learning-rate milestones
 lie beyond a short budget, so every variant trains at the constant peak rate), or after `--steps`
 steps when the cores are shared with other work (a wall-clock budget then measures the load, not
@@ -40,7 +39,7 @@ import exp_common
 import numpy as np
 
 from nmjax import atomic, metrics, runs
-from nmjax.config import apply_overrides, skel_preset
+from nmjax.config import apply_overrides, skel_preset, with_steps
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import evaluate_phase1, phase1_outputs
@@ -63,7 +62,7 @@ class Variant:
 # body as the paper's 16^3 at G=64, so "sigma_paper" halves sigma_g to keep the paper's width in
 # body units (1.5 -> 0.75 on synth-arm, 1.0 -> 0.5 on synth-hand).
 VARIANTS: dict[str, Variant] = {
-    "base": Variant("the cpu preset without its study changes (config.CPU_STUDY_CHANGES)"),
+    "base": Variant("the cpu preset"),
     "data10x": Variant("10x training sequences (300, seed 1)", sequences=300),
     "sigma_paper": Variant("sigma_g halved (the paper's width in body units)", ("sigma_half",)),
     "vol10": Variant("w_vol = 10", ("weights.vol=10.0",)),
@@ -91,7 +90,7 @@ VARIANTS: dict[str, Variant] = {
     "vol10_temp0.5": Variant(
         "vol10 + temp0.5", ("weights.vol=10.0", "model.keypoint_temperature=0.5")
     ),
-    # The other levers on top of synth-hand's adopted vol10_temp0.5 (config.CPU_STUDY_CHANGES).
+    # The other levers on top of vol10_temp0.5, which measured best on synth-hand.
     "vol10_temp0.5_c32": Variant(
         "vol10_temp0.5 + c32",
         (
@@ -157,17 +156,17 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     if name not in VARIANTS:
         raise SystemExit(f"unknown variant {name!r}; valid: {', '.join(VARIANTS)}")
     variant = VARIANTS[name]
-    cfg = skel_preset(data, "cpu", study_changes=False)  # rows stay comparable across adoptions
+    cfg = skel_preset(data, "cpu")
     overrides = [o for o in variant.overrides if o not in ("sigma_half", "gt_joints")]
     if "sigma_half" in variant.overrides:
         overrides.append(f"model.sigma_g={cfg.model.sigma_g / 2}")
     cfg = apply_overrides(cfg, overrides)
     if "gt_joints" in variant.overrides:
         cfg = exp_common.supervised_by_joints(cfg, data)
+    # Counted in steps: 100,000 when the wall-clock limit ends the run.
     cfg = dataclasses.replace(
-        cfg,
+        with_steps(cfg, 100_000 if steps is None else steps),
         seed=seed,
-        steps=100_000 if steps is None else steps,  # else the wall-clock limit ends the run
         time_limit_minutes=minutes if steps is None else 0.0,
         data=dataclasses.replace(cfg.data, seed=seed),
     )
@@ -303,9 +302,10 @@ def write_report(rows: list[dict]) -> None:
         "# Phase-1 study at CPU scale",
         "",
         "Made by `experiments/phase1_study.py` (the command of each row below). Every variant "
-        "trains from the `cpu` preset as it was before the study (without "
-        "`config.CPU_STUDY_CHANGES`, which hold the adopted variants, so every row has the same "
-        "base) for a fixed budget (column budget: wall-clock minutes "
+        "trains from the `cpu` preset of its commit (rows made before the detector and the "
+        "training recipe became the release's, up to commit 07dc2af, trained the earlier "
+        "network and recipe without the study's adopted changes) for a fixed budget (column "
+        "budget: wall-clock minutes "
         "through `time_limit_minutes`, or a step count where the cores were shared) and is "
         "scored on the standard test split of its body (`nmjax.evaluate.evaluate_phase1`, up "
         "to 8 crops per test sequence). SC: Eq. 21 as published (per-frame alpha >= 0.2); SC "

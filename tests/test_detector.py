@@ -272,13 +272,6 @@ def test_strided_pool_and_transposed_conv_match_definitions():
     assert float(lhs) == pytest.approx(float(rhs), rel=1e-4)
 
 
-def test_lecun_normal_statistics():
-    w = np.asarray(blocks.lecun_normal(jax.random.key(0), (3, 3, 3, 20, 400)))
-    assert np.abs(w).max() <= 2.0 / np.sqrt(540) / 0.8796 + 1e-6
-    assert w.std() == pytest.approx(1.0 / np.sqrt(540), rel=0.02)
-    assert abs(w.mean()) < 1e-3
-
-
 def test_hourglass_levels():
     assert blocks.hourglass_levels(16, 3) == 3
     assert blocks.hourglass_levels(8, 3) == 3
@@ -312,7 +305,7 @@ def test_detector_output_shapes_and_ranges(tiny_outputs):
     assert all(v.dtype == jnp.float32 for v in out.values())
     recon = np.asarray(out["recon"])
     assert np.all((recon >= 0) & (recon <= 1))
-    assert np.all(np.asarray(out["heatmaps"]) > 0)  # softplus
+    assert np.all(np.asarray(out["heatmaps"]) > 0)  # softplus after the fusion
     kp = np.asarray(out["keypoints"])
     assert np.all(np.abs(kp[..., :3]) <= 1.0 + 1e-6)
     assert np.all((kp[..., 3] >= 0) & (kp[..., 3] <= 1 + 1e-6))
@@ -343,14 +336,6 @@ def test_frames_are_independent_except_through_temporal_mean(tiny_outputs):
     swapped = model(voxels[:, perm])
     np.testing.assert_allclose(swapped["keypoints"], out["keypoints"][:, perm], atol=1e-5)
     np.testing.assert_allclose(swapped["recon"], out["recon"][:, perm], atol=1e-5)
-
-
-def test_fusion_starts_as_frame_heatmap_in_exponential_regime(tiny_outputs):
-    cfg, model, _, _ = tiny_outputs
-    w_frame, w_st, bias = cfg.model.fuse_init
-    np.testing.assert_allclose(model.fuse.kernel[...].ravel(), [w_frame, w_st])
-    np.testing.assert_allclose(model.fuse.bias[...], [bias])
-    assert bias < -2 and w_st == 0.0  # see DetectorConfig.fuse_init
 
 
 @pytest.mark.parametrize(

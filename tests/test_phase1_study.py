@@ -56,31 +56,15 @@ def test_every_variant_is_a_valid_config_with_its_change(study):
         study.variant_config("synth-arm", "nope", 1, 0)
 
 
-def test_cpu_preset_adopts_measured_variants_and_the_base_stays_without_them(study):
+def test_base_variant_is_the_cpu_preset_counted_in_steps(study):
     import dataclasses
 
-    from nmjax.config import CPU_FULL_RUN_SCHEDULES, CPU_STUDY_CHANGES, skel_preset
+    from nmjax.config import skel_preset, with_steps
 
-    hand = skel_preset("synth-hand", "cpu")
-    assert (hand.weights.vol, hand.model.keypoint_temperature) == (10.0, 0.5)
-    assert (hand.steps, hand.lr_milestones) == CPU_FULL_RUN_SCHEDULES["synth-hand"]
     base = study.variant_config("synth-hand", "base", 12.0, 0)
-    assert (base.weights.vol, base.model.keypoint_temperature) == (0.1, 1.0)  # HanCo's w_vol
-    before = skel_preset("synth-hand", "cpu", study_changes=False)
-    assert (before.steps, before.lr_milestones) == (2_200, (1_400, 1_900))
-    assert base.lr_milestones == before.lr_milestones
-    for steps, milestones in CPU_FULL_RUN_SCHEDULES.values():  # both decays happen in the run
-        assert 0 < milestones[0] < milestones[1] < steps
-    assert skel_preset("synth-hand", "default").weights.vol == 0.1  # the paper's scale: untouched
-    # Every adopted change is one of the study's variants, so its rows are the evidence.
-    measured = {v.overrides: name for name, v in study.VARIANTS.items() if v.sequences is None}
-    for data, changes in CPU_STUDY_CHANGES.items():
-        name = measured[changes]
-        row = study.variant_config(data, name, 12.0, 0)
-        budget = {
-            "steps": row.steps,
-            "lr_milestones": before.lr_milestones,
-            "time_limit_minutes": 12.0,
-            "seed": 0,
-        }
-        assert row == dataclasses.replace(skel_preset(data, "cpu"), **budget), (data, name)
+    preset = skel_preset("synth-hand", "cpu")
+    assert base == dataclasses.replace(with_steps(preset, 100_000), time_limit_minutes=12.0, seed=0)
+    assert base.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (0.1, 1.0)
+    fixed = study.variant_config("synth-arm", "vol10_temp0.5", 0.0, 1, steps=600)
+    assert (fixed.steps, fixed.time_limit_minutes, fixed.seed) == (600, 0.0, 1)
+    assert (fixed.weights.vol, fixed.model.keypoint_temperature) == (10.0, 0.5)

@@ -55,24 +55,38 @@ def test_loss_decreases_on_fixed_batch_and_compiles_once(data_root, monkeypatch)
 
     # Traced at most once over all the steps (zero times if another test compiled this step).
     monkeypatch.setattr(skel, "loss_fn", chex.assert_max_traces(skel.loss_fn, n=1))
-    cfg = _cfg(data_root, learning_rate=3e-3)
+    cfg = _cfg(data_root, learning_rate=1e-2)
     graphdef, state = skel.build(cfg)
     mesh = parallel.data_mesh()
     state = parallel.replicate(state, mesh)  # placed as the trainer places it
     step_fn, _ = skel.make_steps(graphdef, cfg, mesh)
     batch = skel.device_batch(next(pipeline.skel_iterator(cfg.data, "train")), cfg, mesh)
     losses = []
-    for _ in range(8):
+    for _ in range(12):
         state, scalars = step_fn(state, batch)
         losses.append(float(scalars["loss"]))
-    assert losses[-1] < 0.9 * losses[0], losses
+    # The released initialisation starts every layer small (the decoder's output near its copy
+    # of v_1), so the loss falls steadily but by a few percent in the first steps.
+    assert all(b < a for a, b in zip(losses[2:], losses[3:], strict=False)), losses
+    assert losses[-1] < 0.97 * losses[0], losses
     assert set(scalars) >= {"loss", "recon", "sparse", "sep", "vol", "local", "time", "traj"}
 
 
-def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, monkeypatch):
+@pytest.fixture(scope="module")
+def three_sequences(tmp_path_factory):
+    """synth-arm with 2 training sequences and 1 test sequence: 2 steps an epoch at B = 1."""
+    from nmjax.data import synthetic
+
+    root = tmp_path_factory.mktemp("data3") / "synth-arm"
+    return synthetic.generate(
+        "synth-arm", root, num_sequences=3, frames=8, points=2000, progress=False
+    )
+
+
+def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_path, monkeypatch):
     # The compiled step is shared by the three runs of this process: at most one trace.
     monkeypatch.setattr(skel, "loss_fn", chex.assert_max_traces(skel.loss_fn, n=1))
-    cfg = _cfg(data_root)
+    cfg = _cfg(three_sequences)
     straight = skel.train(cfg, tmp_path / "straight", progress=False)
     runs.finish_phase1(tmp_path / "straight")
     first = skel.train(
@@ -81,20 +95,24 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, mo
     assert first["step"] == 3
     resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
     assert resumed["start_step"] == 3 and resumed["step"] == 6
-    graphdef, state = skel.build(cfg)
+    # The state as the trainer built it: with the epochs resolved (2 sequences at B = 1).
+    graphdef, state = skel.build(config.resolve_epochs(cfg, 2, 1))
     _restored_equal(tmp_path, skel.abstract_state(state), step=6)
     assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
     # The resumed run's log reads like the straight one's: each step once, in order.
     records = common.read_metrics(tmp_path / "resumed")
     train_steps = [r["step"] for r in records if "train/loss" in r]
     assert train_steps == [1, 2, 3, 4, 5, 6]
-    # The fusion weights ride with the training scalars (they start at cfg.model.fuse_init and
+    # The fusion weights ride with the training scalars (they start near 0, the bias at 0, and
     # move with the steps), the heatmaps' far mass with the validation ones.
-    w_frame, w_st, b = cfg.model.fuse_init
     first_log = next(r for r in records if "train/loss" in r)
-    assert first_log["train/fuse_w_st"] != w_st or first_log["train/fuse_b"] != b
-    assert abs(first_log["train/fuse_w_frame"] - w_frame) < 0.1
+    assert first_log["train/fuse_b"] != 0.0
+    assert abs(first_log["train/fuse_w_frame"]) < 0.1 and abs(first_log["train/fuse_w_st"]) < 0.1
     assert 0.0 < straight["val/heat_far_mass"] < 1.0
+    # Adam restarted at the epoch boundaries (2 training sequences at B = 1: steps 2 and 4), so
+    # the resumed run crossed one (step 4) after it resumed at step 3, and matched regardless.
+    saved = json.loads((tmp_path / "resumed" / "config.json").read_text())
+    assert saved["optimizer_reset"] == "epoch" and saved["steps_per_epoch"] == 2
 
     run = tmp_path / "straight"
     k, n, g = cfg.model.num_keypoints, cfg.model.num_affinity, cfg.model.grid
@@ -114,9 +132,9 @@ def test_resume_equals_straight_run_and_writes_artifacts(data_root, tmp_path, mo
     assert list((run / "tb").iterdir())
     saved = json.loads((run / "config.json").read_text())
     assert saved["model"]["channels"] == 4 and saved["steps"] == 6
-    for split in ("train", "test"):
+    for split, count in (("train", 2), ("test", 1)):
         with np.load(run / f"keypoints_{split}.npz") as archive:
-            assert len(archive.files) == 1
+            assert len(archive.files) == count
             kp = archive[archive.files[0]]
             assert kp.shape == (8, k, 4)  # the whole 8-frame sequence, windows of T=3 padded
     # The exported values are the final detector's keypoints, window by window (the last window

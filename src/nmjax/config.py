@@ -24,10 +24,11 @@ class DatasetSpec:
     sample_rate: int  # take every n-th frame of the original sequence
     num_keypoints: int  # K
     sigma_g: float  # gaussian-map width, in cells of the heatmap grid
-    lr_milestones: tuple[int, int]  # epochs at which the learning rate is scaled by 0.25, 0.1
+    decay_epochs: tuple[int, int]  # epochs at which the learning rate becomes 0.25x, then 0.1x
     w_vol: float
     w_traj: float
     w_local: float
+    epochs: int = 200  # phase-1 length in the release's train.py (AIST++ 200, D-FAUST 2,000)
     synthetic: bool = False
 
 
@@ -35,7 +36,9 @@ DATASETS: dict[str, DatasetSpec] = {
     spec.name: spec
     for spec in (
         DatasetSpec("aist", 2, 24, 1.5, (60, 140), w_vol=10.0, w_traj=1.0, w_local=1e-3),
-        DatasetSpec("dfaust", 5, 24, 1.5, (600, 1400), w_vol=10.0, w_traj=1.0, w_local=1e-3),
+        DatasetSpec(
+            "dfaust", 5, 24, 1.5, (600, 1400), w_vol=10.0, w_traj=1.0, w_local=1e-3, epochs=2000
+        ),
         DatasetSpec("hanco", 1, 28, 1.0, (120, 170), w_vol=0.1, w_traj=1e-6, w_local=1.0),
         DatasetSpec("panda", 1, 12, 1.5, (60, 140), w_vol=10.0, w_traj=1e-3, w_local=1.0),
         DatasetSpec("animals", 1, 24, 2.0, (120, 170), w_vol=10.0, w_traj=1e-6, w_local=1e-3),
@@ -152,15 +155,8 @@ class DetectorConfig:
     sigma_g: float = 1.5
     num_affinity: int = 2  # N
     decoder_sharpness: float = 10.0
-    # Initial fusion of the frame and spatio-temporal heatmaps, z = w_frame h + w_st h_st + b,
-    # heatmap = softplus(z): (w_frame, w_st, b). A negative b starts softplus in its exponential
-    # regime (a normalised heatmap is then a spatial softmax of the features); at b = 0 the
-    # constant softplus(0) = 0.69 dominates and keypoints sit at the grid centre until Adam has
-    # moved b by a few units. w_st = 0 lets the frame branch learn to localise first: started
-    # equal, the wider spatio-temporal branch wins and every keypoint stays still over time.
-    fuse_init: tuple[float, float, float] = (1.0, 0.0, -4.0)
     # Keypoint positions mu from heatmap^(1 / keypoint_temperature) (`keypoints.
-    # heatmap_to_keypoints`); 1 is the paper's expectation under the softplus heatmap itself.
+    # heatmap_to_keypoints`); 1 is the paper's expectation under the fused heatmap itself.
     keypoint_temperature: float = 1.0
     # Precision of the 3D convolutions ("float32" | "bfloat16": inputs and kernels cast, results
     # back to float32); parameters, GroupNorm, heatmaps, keypoints and losses stay float32.
@@ -174,11 +170,22 @@ class SkelTrainConfig:
     data: DataConfig = field(default_factory=DataConfig)
     model: DetectorConfig = field(default_factory=DetectorConfig)
     weights: LossWeights = field(default_factory=LossWeights)
-    steps: int = 20_000
-    learning_rate: float = 1e-3
-    lr_milestones: tuple[int, int] = (12_000, 17_000)  # steps; scaled by lr_decay
+    # The run's length, as the release counts it (DESIGN 6b). epochs > 0: that many epochs of
+    # `steps_per_epoch` steps, the learning rate decayed at `decay_epochs`; `steps_per_epoch`,
+    # `steps` and `lr_milestones` are filled in from the training set when the run starts
+    # (`resolve_epochs`) and config.json records them. epochs = 0: `steps` and `lr_milestones`
+    # as given (a step count instead of epochs).
+    epochs: int = 200
+    decay_epochs: tuple[int, ...] = (60, 140)
+    steps_per_epoch: int = 0  # 0: not resolved yet (ceil(training sequences / batch))
+    steps: int = 0
+    learning_rate: float = 4e-4  # the release's, for every dataset
+    lr_milestones: tuple[int, ...] = ()  # steps; scaled by lr_decay
     lr_decay: tuple[float, float] = (0.25, 0.1)
-    clip_norm: float = 1.0
+    clip_norm: float = 0.0  # global-norm clipping of every step; 0: none (the release's)
+    # "epoch": Adam's state (moments and bias correction) restarts at every epoch boundary, as
+    # the release creates its optimizer anew each epoch; "never": one state for the whole run.
+    optimizer_reset: str = "epoch"
     # > 0: also keep an exponential moving average of the weights with this decay per step
     # (bias-corrected), and validate, checkpoint-select and export the averaged detector; 0 (the
     # paper): the weights as trained.
@@ -264,38 +271,28 @@ def check_batch_split(
 
 
 PRESETS = ("default", "cpu", "tiny")
+# How often Adam's state restarts: "epoch" (the release) or "never".
+OPTIMIZER_RESETS = ("epoch", "never")
 
-# Changes to the `cpu` preset that the phase-1 study (experiments/phase1_study.py) measured as
-# better than the shrunk paper recipe on a body, as `--set` overrides. The study's rows are
-# measured against the preset without them (`skel_preset(..., study_changes=False)`).
-CPU_STUDY_CHANGES: dict[str, tuple[str, ...]] = {
-    # experiments/results/phase1_study.md, rows "synth-hand vol10_temp0.5" against "base" at
-    # seeds 0 (1,000 steps) and 1 (600 steps): joint distance and bone-length variation halved,
-    # twice as many distinct keypoints, SC +0.06 and +0.10. The 60-minute run with it is
-    # experiments/results/train_skel_synth-hand.json (NOTES.md).
-    "synth-hand": ("weights.vol=10.0", "model.keypoint_temperature=0.5"),
-}
-
-# Longer `cpu` schedules (steps, learning-rate milestones) measured by full runs with the body's
-# CPU_STUDY_CHANGES: each fits the issue's 60-minute budget on a 2-core AVX-512 machine and beat
-# the 2,200 steps on every test column (experiments/results/NOTES.md, "Sessions 9-10"). Bodies
-# without an entry keep the 2,200 steps.
-CPU_FULL_RUN_SCHEDULES: dict[str, tuple[int, tuple[int, int]]] = {
-    # train_skel_synth-hand.json: 6,000 steps in 49.7 minutes; test SC 0.488 -> 0.528, CD 39.2
-    # -> 24.9, bone-length variation 0.104 -> 0.079 (train_skel_synth-hand_2200steps.json).
-    "synth-hand": (6_000, (3_800, 5_200)),
-}
+# The `cpu` preset's length in epochs: at the synthetic sets' 27 training sequences and B = 2 (14
+# steps an epoch) about the 2,200 steps the preset trained before it counted epochs, which take
+# 15-20 minutes on a 2-core AVX-512 machine. Its decays sit at the same fractions of the run as
+# the dataset's own (`cpu_decay_epochs`).
+CPU_EPOCHS = 160
 
 
-def skel_preset(
-    data: str = "synth-hand", preset: str = "default", study_changes: bool = True
-) -> SkelTrainConfig:
+def cpu_decay_epochs(spec: DatasetSpec, epochs: int = CPU_EPOCHS) -> tuple[int, ...]:
+    """The dataset's decay epochs moved to the same fractions of a run of `epochs` epochs."""
+    return tuple(round(e * epochs / spec.epochs) for e in spec.decay_epochs)
+
+
+def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainConfig:
     """Phase-1 configuration of dataset `data` at scale `preset`.
 
-    default: the paper (G=64, C=128, batch 3, T=10). cpu: G=32, C=16, narrow hourglass, batch 2
-    of T=6, for 2 CPU cores, plus the body's `CPU_STUDY_CHANGES` and `CPU_FULL_RUN_SCHEDULES`
-    unless `study_changes` is False (the preset as it was before the study: 2,200 steps).
-    tiny: G=16, for tests.
+    default: the paper's network and the release's recipe (G=64, C=128, batch 3, T=10; the
+    dataset's epochs and decay epochs, Adam at 4e-4 restarted every epoch, no clipping).
+    cpu: G=32, C=16, narrow hourglass, batch 2 of T=6, `CPU_EPOCHS` epochs, for 2 CPU cores;
+    the same recipe otherwise. tiny: G=16 and 20 steps, for tests.
     """
     spec = dataset_spec(data)
     if preset not in PRESETS:
@@ -303,27 +300,26 @@ def skel_preset(
     weights = LossWeights(vol=spec.w_vol, traj=spec.w_traj, local=spec.w_local)
     model = DetectorConfig(num_keypoints=spec.num_keypoints, sigma_g=spec.sigma_g)
     data_cfg = DataConfig(name=data, sample_rate=spec.sample_rate)
-    cfg = SkelTrainConfig(data=data_cfg, model=model, weights=weights)
+    cfg = SkelTrainConfig(
+        data=data_cfg,
+        model=model,
+        weights=weights,
+        epochs=spec.epochs,
+        decay_epochs=spec.decay_epochs,
+    )
     if preset == "cpu":
-        # Sized for 2 CPU cores: 12 frames of 32^3 per step instead of 30 of 64^3. The 2,200
-        # steps took 15-20 minutes on 2-core AVX-512 machines and take about 3x longer on a
-        # 2.0 GHz AVX2 one (experiments/results/NOTES.md); a body's full-run schedule is longer.
+        # Sized for 2 CPU cores: 12 frames of 32^3 per step instead of 30 of 64^3.
         cfg = dataclasses.replace(
             cfg,
             data=dataclasses.replace(data_cfg, grid=32, frames=6, batch_size=2),
             model=dataclasses.replace(model, grid=32, channels=16, hourglass_channels=(16, 24, 32)),
-            steps=2_200,
-            lr_milestones=(1_400, 1_900),
+            epochs=CPU_EPOCHS,
+            decay_epochs=cpu_decay_epochs(spec),
             log_every=25,
             val_every=200,
             val_batches=8,
             ckpt_every=200,
         )
-        if study_changes:
-            cfg = apply_overrides(cfg, CPU_STUDY_CHANGES.get(data, ()))
-            if data in CPU_FULL_RUN_SCHEDULES:
-                steps, milestones = CPU_FULL_RUN_SCHEDULES[data]
-                cfg = dataclasses.replace(cfg, steps=steps, lr_milestones=milestones)
     elif preset == "tiny":
         cfg = dataclasses.replace(
             cfg,
@@ -335,6 +331,7 @@ def skel_preset(
                 channels=8,
                 hourglass_channels=(8, 8, 8),
             ),
+            epochs=0,
             steps=20,
             lr_milestones=(10, 15),
             log_every=5,
@@ -343,6 +340,64 @@ def skel_preset(
             ckpt_every=10,
         )
     return cfg
+
+
+def steps_per_epoch(num_sequences: int, batch_size: int) -> int:
+    """Optimizer steps in one epoch: ceil(num_sequences / batch_size).
+
+    An epoch is one random crop of every training sequence, shuffled (DESIGN 6b). The release
+    ends an epoch with a partial batch; a compiled step has a fixed batch, so here the last batch
+    of an epoch is filled with the first crops of the next epoch's shuffle (the crop stream runs
+    on without a break, `data.pipeline`): no crop is dropped, and every epoch is ceil(N / B)
+    steps (27 sequences at B = 3: 9; 28: 10).
+    """
+    if num_sequences < 1 or batch_size < 1:
+        raise ValueError(
+            f"steps_per_epoch needs >= 1 sequence and batch size, got {num_sequences}, {batch_size}"
+        )
+    return -(-num_sequences // batch_size)
+
+
+def resolve_epochs(cfg: Any, num_sequences: int, batch_size: int) -> Any:
+    """`cfg` (phase 1 or 2) with `steps_per_epoch` from the training set and, for a schedule in
+    epochs that is not resolved yet, `steps` (and phase 1's `lr_milestones`) from its epochs.
+
+    A configuration already resolved (a resumed run's config.json) keeps its steps, which
+    `--steps` may have changed; its steps per epoch must still be those of the data.
+
+    Raises:
+      ValueError: the stored steps_per_epoch differs from what the data gives now.
+    """
+    per_epoch = steps_per_epoch(num_sequences, batch_size)
+    if cfg.steps_per_epoch:
+        if cfg.steps_per_epoch != per_epoch:
+            raise ValueError(
+                f"the run was configured with {cfg.steps_per_epoch} steps per epoch, but "
+                f"{num_sequences} training sequences in batches of {batch_size} give "
+                f"{per_epoch}: the dataset changed; start a new run"
+            )
+        return cfg
+    cfg = dataclasses.replace(cfg, steps_per_epoch=per_epoch)
+    if cfg.epochs <= 0:
+        return cfg
+    cfg = dataclasses.replace(cfg, steps=cfg.epochs * per_epoch)
+    if hasattr(cfg, "lr_milestones"):
+        cfg = dataclasses.replace(cfg, lr_milestones=tuple(e * per_epoch for e in cfg.decay_epochs))
+    return cfg
+
+
+def milestone_fractions(cfg: SkelTrainConfig) -> tuple[float, ...]:
+    """Where the learning-rate decays sit, as fractions of the run."""
+    if cfg.epochs > 0:
+        return tuple(e / cfg.epochs for e in cfg.decay_epochs)
+    return tuple(m / cfg.steps for m in cfg.lr_milestones)
+
+
+def with_steps(cfg: SkelTrainConfig, steps: int) -> SkelTrainConfig:
+    """`cfg` as a run of `steps` optimizer steps (epochs = 0), each learning-rate decay at the
+    fraction of the run where `cfg` had it (`--steps`, `--fit-minutes`)."""
+    milestones = tuple(round(f * steps) for f in milestone_fractions(cfg))
+    return dataclasses.replace(cfg, epochs=0, steps=steps, lr_milestones=milestones)
 
 
 # Share of a fitted budget kept for what is not a train step: compiling, validations, figures,
@@ -360,8 +415,8 @@ def fit_schedule(
 ) -> SkelTrainConfig:
     """`cfg` with as many steps as fit `minutes` of wall time, the schedule scaled with them.
 
-    steps = floor((60 minutes - spent_seconds) / (seconds_per_step (1 + overhead))); every
-    learning-rate milestone keeps its fraction of the run (milestone * steps / cfg.steps), and
+    steps = floor((60 minutes - spent_seconds) / (seconds_per_step (1 + overhead))), counted in
+    steps (epochs = 0); every learning-rate decay keeps its fraction of the run, and
     `time_limit_minutes` becomes what is left of the budget, so a slower step than measured
     stops the run in time instead of overrunning it.
 
@@ -383,7 +438,7 @@ def fit_schedule(
         )
     left = 60.0 * minutes - spent_seconds
     steps = int(max(left, 0.0) // (seconds_per_step * (1.0 + overhead)))
-    milestones = tuple(round(m * steps / cfg.steps) for m in cfg.lr_milestones)
+    milestones = with_steps(cfg, steps).lr_milestones if steps > 0 else ()
     if (
         steps < len(milestones) + 2
         or len(set(milestones)) < len(milestones)
@@ -393,9 +448,7 @@ def fit_schedule(
             f"{minutes} minutes fit only {steps} steps of {seconds_per_step:.3g} s (after "
             f"{spent_seconds:.0f} s spent measuring); give more minutes or a smaller preset"
         )
-    return dataclasses.replace(
-        cfg, steps=steps, lr_milestones=milestones, time_limit_minutes=left / 60.0
-    )
+    return dataclasses.replace(with_steps(cfg, steps), time_limit_minutes=left / 60.0)
 
 
 def dyn_preset(data: str = "synth-hand", preset: str = "default") -> DynTrainConfig:

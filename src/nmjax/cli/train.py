@@ -40,7 +40,13 @@ def _common_args(p: Parser, what: str) -> None:
     from nmjax.config import PRESETS, add_override_argument
 
     p.add_argument("--preset", default="default", choices=PRESETS, help="ignored with --resume")
-    p.add_argument("--steps", type=int, default=None, help="total optimizer steps")
+    p.add_argument(
+        "--steps",
+        type=int,
+        default=None,
+        help="total optimizer steps, instead of the preset's epochs (the learning-rate decays "
+        "keep their fractions of the run); with --resume, where the run ends",
+    )
     p.add_argument("--run", default=None, help=f"run folder (default runs/{what}-DATA-STAMP)")
     p.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
     add_override_argument(p, "override a config field, e.g. --set model.channels=16")
@@ -68,7 +74,7 @@ def _initialize(args: argparse.Namespace) -> None:
 
 def skel_config(args: argparse.Namespace):
     """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import SkelTrainConfig, apply_overrides, skel_preset
+    from nmjax.config import SkelTrainConfig, apply_overrides, skel_preset, with_steps
     from nmjax.train import skel
 
     if args.resume:
@@ -84,7 +90,10 @@ def skel_config(args: argparse.Namespace):
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
     cfg = apply_overrides(cfg, args.overrides)
     if args.steps is not None:
-        cfg = dataclasses.replace(cfg, steps=args.steps)
+        # A new run counts in steps instead of epochs; a resumed one keeps its schedule and
+        # only moves its end.
+        resized = dataclasses.replace(cfg, steps=args.steps)
+        cfg = resized if args.resume else with_steps(cfg, args.steps)
     if args.run is not None:
         cfg = dataclasses.replace(cfg, run=str(args.run))
     skel.check_config(cfg)

@@ -29,7 +29,17 @@ from flax import nnx
 
 from nmjax.keypoints import axis_coords
 
-LEAK = 0.2  # LeakyReLU slope
+# LeakyReLU negative slope: PyTorch's default, which the released network uses everywhere.
+LEAK = 0.01
+# GroupNorm epsilon: PyTorch's default, as released (flax's default is 1e-6).
+GN_EPS = 1e-5
+# Initial weight scales of the released network (its `weights_init`): every convolution N(0,
+# 0.02); those inside the feature nets' conv blocks (stem, pools, residual blocks, hourglass,
+# upsamplings) N(0, 0.001). Biases start at 0, GroupNorm at scale 1, bias 0. A conv followed by
+# GroupNorm computes the same function at any weight scale, but Adam moves each weight by about
+# the learning rate per step, so the scale sets how fast those layers change.
+INIT_STD = 0.02
+FEATURE_INIT_STD = 0.001
 
 
 def num_groups(channels: int) -> int:
@@ -77,7 +87,7 @@ def _group_stats(flat: jax.Array, groups: int, eps: float) -> tuple[jax.Array, j
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(3, 4))
 def group_norm(
-    x: jax.Array, scale: jax.Array, bias: jax.Array, groups: int, eps: float = 1e-6
+    x: jax.Array, scale: jax.Array, bias: jax.Array, groups: int, eps: float = GN_EPS
 ) -> jax.Array:
     """GroupNorm (Wu & He 2018; the detector's norm, paper Fig. 9) of channels-last x.
 
@@ -152,6 +162,11 @@ class GroupNorm(nnx.GroupNorm):
                 "takes the other settings)"
             )
         return group_norm(x, self.scale[...], self.bias[...], self.num_groups, self.epsilon)
+
+
+def group_norm_layer(channels: int, rngs: nnx.Rngs) -> GroupNorm:
+    """The detector's GroupNorm: channels / 16 groups, epsilon `GN_EPS`, scale 1, bias 0."""
+    return GroupNorm(channels, num_groups=num_groups(channels), epsilon=GN_EPS, rngs=rngs)
 
 
 def check_heatmap_stride(stride: int) -> None:
@@ -623,23 +638,14 @@ def _face_planes_bwd(shape: tuple[int, ...], grads: tuple[jax.Array, ...]) -> tu
 face_planes.defvjp(_face_planes_fwd, _face_planes_bwd)
 
 
-def lecun_normal(key: jax.Array, shape: tuple[int, ...]) -> jax.Array:
-    """LeCun-normal (truncated at 2 std, fan-in over all but the last axis) weights, drawn with
-    NumPy from a seed taken from `key`.
+def normal_init(key: jax.Array, shape: tuple[int, ...], std: float) -> jax.Array:
+    """N(0, std^2) weights of `shape`, drawn with NumPy from a seed taken from `key`.
 
-    Same distribution as `nnx.initializers.lecun_normal()`; jax.random would compile one sampler
-    per distinct weight shape, which dominated model construction time on CPU.
+    jax.random would compile one sampler per distinct weight shape, which dominated model
+    construction time on CPU.
     """
     seed = np.asarray(jax.random.key_data(key)).ravel().tolist()
-    rng = np.random.default_rng(seed)
-    w = rng.standard_normal(shape)
-    bad = np.abs(w) > 2.0
-    while bad.any():  # resample outside [-2, 2]: a truncated normal
-        w[bad] = rng.standard_normal(int(bad.sum()))
-        bad = np.abs(w) > 2.0
-    fan_in = int(np.prod(shape[:-1]))
-    std = np.sqrt(1.0 / fan_in) / 0.87962566103423978  # std of the unit normal truncated at 2
-    return jnp.asarray(w * std, jnp.float32)
+    return jnp.asarray(np.random.default_rng(seed).normal(0.0, std, shape), jnp.float32)
 
 
 class Conv3D(nnx.Module):
@@ -647,7 +653,8 @@ class Conv3D(nnx.Module):
 
     kernel=k, stride=1: ordinary convolution (odd k). kernel=2, stride=2: strided convolution
     halving each axis ("pool"). transpose=True, kernel=2, stride=2: transposed convolution
-    doubling each axis. Initialisation as `nnx.Conv` (LeCun normal, zero bias). The convolution
+    doubling each axis. Kernel initialised N(0, init_std^2) (`INIT_STD`, the released
+    network's), bias 0. The convolution
     runs in `compute_dtype` (static attribute, "float32" or "bfloat16"); the result is float32.
     """
 
@@ -659,6 +666,7 @@ class Conv3D(nnx.Module):
         stride: int = 1,
         *,
         transpose: bool = False,
+        init_std: float = INIT_STD,
         rngs: nnx.Rngs,
     ):
         if stride not in (1, kernel) or (stride == kernel and kernel not in (1, 2)):
@@ -669,7 +677,7 @@ class Conv3D(nnx.Module):
             raise ValueError("Conv3D: transposed convolution only with kernel = stride = 2")
         self.kernel_size, self.stride, self.transpose = kernel, stride, transpose
         shape = (kernel, kernel, kernel, in_ch, out_ch)
-        self.kernel = nnx.Param(lecun_normal(rngs.params(), shape))
+        self.kernel = nnx.Param(normal_init(rngs.params(), shape, init_std))
         self.bias = nnx.Param(jnp.zeros((out_ch,), jnp.float32))
         self.compute_dtype = "float32"
         self.conv_form = "auto"  # how a stride-1 kernel is evaluated: `conv3d_same`'s `form`
@@ -726,10 +734,17 @@ class ConvNormAct(nnx.Module):
     """conv (kernel k, stride s, SAME padding) -> GroupNorm -> LeakyReLU."""
 
     def __init__(
-        self, in_ch: int, out_ch: int, kernel: int = 3, stride: int = 1, *, rngs: nnx.Rngs
+        self,
+        in_ch: int,
+        out_ch: int,
+        kernel: int = 3,
+        stride: int = 1,
+        *,
+        init_std: float = INIT_STD,
+        rngs: nnx.Rngs,
     ):
-        self.conv = Conv3D(in_ch, out_ch, kernel, stride, rngs=rngs)
-        self.norm = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+        self.conv = Conv3D(in_ch, out_ch, kernel, stride, init_std=init_std, rngs=rngs)
+        self.norm = group_norm_layer(out_ch, rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)
@@ -752,25 +767,44 @@ class ConvNormAct(nnx.Module):
 
 
 class ResBlock(nnx.Module):
-    """Residual block: two conv3 + GroupNorm, a 1x1x1 projection on the skip when widths differ."""
+    """Residual block as released: conv3-GN-LeakyReLU-conv3-GN on one branch, the identity or a
+    1x1x1 projection + GroupNorm (when widths differ) on the skip, and branch + skip returned
+    with no activation after the sum (the release's `leaky_relu(res + skip, True)` passes True as
+    the negative slope: the identity). The output can be negative."""
 
-    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
-        self.conv1 = ConvNormAct(in_ch, out_ch, 3, rngs=rngs)
-        self.conv2 = Conv3D(out_ch, out_ch, 3, rngs=rngs)
-        self.norm2 = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
-        self.skip = Conv3D(in_ch, out_ch, 1, rngs=rngs) if in_ch != out_ch else None
+    def __init__(
+        self, in_ch: int, out_ch: int, *, init_std: float = FEATURE_INIT_STD, rngs: nnx.Rngs
+    ):
+        self.conv1 = ConvNormAct(in_ch, out_ch, 3, init_std=init_std, rngs=rngs)
+        self.conv2 = Conv3D(out_ch, out_ch, 3, init_std=init_std, rngs=rngs)
+        self.norm2 = group_norm_layer(out_ch, rngs)
+        self.skip = (
+            SkipProjection(in_ch, out_ch, init_std=init_std, rngs=rngs) if in_ch != out_ch else None
+        )
 
     def __call__(self, x: jax.Array) -> jax.Array:
         y = self.norm2(self.conv2(self.conv1(x)))
-        skip = x if self.skip is None else self.skip(x)
-        return nnx.leaky_relu(y + skip, LEAK)
+        return y + (x if self.skip is None else self.skip(x))
+
+
+class SkipProjection(nnx.Module):
+    """The skip of a residual block that changes width: 1x1x1 conv, then GroupNorm."""
+
+    def __init__(self, in_ch: int, out_ch: int, *, init_std: float, rngs: nnx.Rngs):
+        self.conv = Conv3D(in_ch, out_ch, 1, init_std=init_std, rngs=rngs)
+        self.norm = group_norm_layer(out_ch, rngs)
+
+    def __call__(self, x: jax.Array) -> jax.Array:
+        return self.norm(self.conv(x))
 
 
 class Pool(nnx.Module):
     """Strided 2x2x2 convolution halving each spatial axis, then GroupNorm + LeakyReLU."""
 
-    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
-        self.block = ConvNormAct(in_ch, out_ch, kernel=2, stride=2, rngs=rngs)
+    def __init__(
+        self, in_ch: int, out_ch: int, *, init_std: float = FEATURE_INIT_STD, rngs: nnx.Rngs
+    ):
+        self.block = ConvNormAct(in_ch, out_ch, kernel=2, stride=2, init_std=init_std, rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return self.block(x)
@@ -783,9 +817,11 @@ class Pool(nnx.Module):
 class Upsample(nnx.Module):
     """Transposed 2x2x2 convolution doubling each spatial axis, then GroupNorm + LeakyReLU."""
 
-    def __init__(self, in_ch: int, out_ch: int, *, rngs: nnx.Rngs):
-        self.conv = Conv3D(in_ch, out_ch, 2, 2, transpose=True, rngs=rngs)
-        self.norm = GroupNorm(out_ch, num_groups=num_groups(out_ch), rngs=rngs)
+    def __init__(
+        self, in_ch: int, out_ch: int, *, init_std: float = FEATURE_INIT_STD, rngs: nnx.Rngs
+    ):
+        self.conv = Conv3D(in_ch, out_ch, 2, 2, transpose=True, init_std=init_std, rngs=rngs)
+        self.norm = group_norm_layer(out_ch, rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
         return nnx.leaky_relu(self.norm(self.conv(x)), LEAK)
@@ -802,10 +838,12 @@ def hourglass_levels(size: int, requested: int) -> int:
 
 
 class Hourglass(nnx.Module):
-    """3D hourglass (Xu et al. 2019b style, paper Fig. 9): pool/residual levels down, transposed-
-    conv upsampling back, a residual skip at every resolution added on the way up.
+    """3D hourglass (Xu et al. 2019b style, paper Fig. 9) as released: pool/residual levels down;
+    on the way up a residual block before every transposed-conv upsampling, and the residual skip
+    of each resolution added after it.
 
-    With widths (32, 48, 72) and input width c: c@g -> 32@g/2 -> 48@g/4 -> 72@g/8 -> back to c@g.
+    With widths (32, 48, 72) and input width c: c@g -> 32@g/2 -> 48@g/4 -> 72@g/8, then
+    res(72), up -> 48, + skip, res(48), up -> 32, + skip, res(32), up -> c, + skip.
     """
 
     def __init__(self, channels: int, widths: tuple[int, ...], size: int, *, rngs: nnx.Rngs):
@@ -813,7 +851,10 @@ class Hourglass(nnx.Module):
         widths = (channels, *widths[:levels])
         self.down = nnx.List([_Down(widths[i], widths[i + 1], rngs=rngs) for i in range(levels)])
         self.skips = nnx.List([ResBlock(w, w, rngs=rngs) for w in widths[:levels]])
-        self.bottom = ResBlock(widths[levels], widths[levels], rngs=rngs)
+        # up_res[j] runs before up[j]: widths 72, 48, 32 for the paper's hourglass.
+        self.up_res = nnx.List(
+            [ResBlock(widths[i + 1], widths[i + 1], rngs=rngs) for i in reversed(range(levels))]
+        )
         self.up = nnx.List(
             [Upsample(widths[i + 1], widths[i], rngs=rngs) for i in reversed(range(levels))]
         )
@@ -823,9 +864,8 @@ class Hourglass(nnx.Module):
         for down, skip in zip(self.down, self.skips, strict=True):  # fixed depth, not data
             skips.append(skip(x))
             x = down(x)
-        x = self.bottom(x)
-        for up, skip in zip(self.up, reversed(skips), strict=True):
-            x = up(x) + skip
+        for res, up, skip in zip(self.up_res, self.up, reversed(skips), strict=True):
+            x = up(res(x)) + skip
         return x
 
 
@@ -867,7 +907,7 @@ class FeatureNet(nnx.Module):
     ):
         check_heatmap_stride(stride)
         c4, c2 = max(1, channels // 4), max(1, channels // 2)
-        self.stem = ConvNormAct(1 + 3, c4, kernel=5, rngs=rngs)
+        self.stem = ConvNormAct(1 + 3, c4, kernel=5, init_std=FEATURE_INIT_STD, rngs=rngs)
         self.pool1 = Pool(c4, c4, rngs=rngs)
         self.res1 = ResBlock(c4, c2, rngs=rngs)
         self.pool2 = Pool(c2, c2, rngs=rngs) if stride == 4 else None

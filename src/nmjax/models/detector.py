@@ -16,6 +16,7 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax.config import DetectorConfig
 from nmjax.models.blocks import (
+    INIT_STD,
     LEAK,
     Conv3D,
     ConvNormAct,
@@ -111,8 +112,10 @@ class KeypointDetector(nnx.Module):
     Attributes:
       features: f_feat on single frames (C channels).
       st_features: the same network with 2C channels on the temporal mean (Eq. 6).
-      heat, st_heat: 1x1x1 heatmap heads (-> K), softplus.
-      fuse: 1x1x1 conv (2 -> 1) shared by all keypoints, fusing frame and spatio-temporal heatmaps.
+      heat, st_heat: 1x1x1 heatmap heads (-> K), LeakyReLU (as released: their outputs can be
+        negative).
+      fuse: 1x1x1 conv (2 -> 1) shared by all keypoints, fusing frame and spatio-temporal heatmaps,
+        then softplus: the only positive-valued layer of the heatmap path.
       decoder: f_dec.
       affinity_params: (N, K, K-1) initialised to ones (Eq. 12).
     """
@@ -127,13 +130,12 @@ class KeypointDetector(nnx.Module):
         self.st_features = FeatureNet(2 * c, hg, cfg.grid, stride, rngs=rngs)
         self.heat = Conv3D(c, k, 1, rngs=rngs)
         self.st_heat = Conv3D(2 * c, k, 1, rngs=rngs)
-        # A 1x1x1 conv over the 2 stacked heatmaps, initialised as `cfg.fuse_init` says.
-        w_frame, w_st, bias = cfg.fuse_init
+        # A 1x1x1 conv over the 2 stacked heatmaps; weights N(0, INIT_STD^2), bias 0 as released.
         self.fuse = nnx.Linear(
             2,
             1,
-            kernel_init=lambda *_: jnp.array([[w_frame], [w_st]], jnp.float32),
-            bias_init=nnx.initializers.constant(bias),
+            kernel_init=nnx.initializers.normal(INIT_STD),
+            bias_init=nnx.initializers.zeros,
             rngs=rngs,
         )
         self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, rngs=rngs)
@@ -155,9 +157,9 @@ class KeypointDetector(nnx.Module):
         """
         b, t = voxels.shape[:2]
         feats = self.features(voxels.reshape(b * t, *voxels.shape[2:]))  # (B*T, g, g, g, C)
-        heat = jax.nn.softplus(self.heat(feats))  # (B*T, g, g, g, K)
+        heat = nnx.leaky_relu(self.heat(feats), LEAK)  # (B*T, g, g, g, K)
         mean = jnp.mean(voxels, axis=1)  # (B, G, G, G): the temporal mean of Eq. 6
-        st_heat = jax.nn.softplus(self.st_heat(self.st_features(mean)))  # (B, g, g, g, K)
+        st_heat = nnx.leaky_relu(self.st_heat(self.st_features(mean)), LEAK)  # (B, g, g, g, K)
         heat = heat.reshape(b, t, *heat.shape[1:])
         st_heat = jnp.broadcast_to(st_heat[:, None], heat.shape)
         stacked = jnp.stack([heat, st_heat], axis=-1)  # (B, T, g, g, g, K, 2)

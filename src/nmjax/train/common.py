@@ -19,10 +19,11 @@ import types
 import typing
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import grain
 import jax
+import jax.numpy as jnp
 import numpy as np
 import optax
 import orbax.checkpoint as ocp
@@ -30,6 +31,7 @@ from flax import nnx
 from orbax.checkpoint import checkpoint_managers as ocp_policies
 
 from nmjax import atomic
+from nmjax.config import OPTIMIZER_RESETS
 
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
@@ -51,23 +53,76 @@ def check_positive(cfg: Any, names: tuple[str, ...]) -> None:
             raise ValueError(f"{name} must be >= 1, got {getattr(cfg, name)}")
 
 
+def check_schedule(cfg: Any) -> None:
+    """Refuses (ValueError naming the field) a schedule that cannot run: no length, decays that
+    do not fit it, an unknown optimizer_reset. Phase 1 and phase 2 share it."""
+    if cfg.optimizer_reset not in OPTIMIZER_RESETS:
+        raise ValueError(
+            f"optimizer_reset must be one of {', '.join(OPTIMIZER_RESETS)}, got "
+            f"{cfg.optimizer_reset!r}"
+        )
+    if cfg.epochs < 0:
+        raise ValueError(f"epochs must be >= 0 (0: a step count instead), got {cfg.epochs}")
+    if cfg.epochs == 0 and cfg.steps < 1:
+        raise ValueError(f"steps must be >= 1 when epochs = 0, got {cfg.steps}")
+    decays = getattr(cfg, "decay_epochs", ())
+    if cfg.epochs > 0 and any(not 0 < e < cfg.epochs for e in decays):
+        raise ValueError(f"decay_epochs {decays} must lie inside the run's {cfg.epochs} epochs")
+
+
+class RestartState(NamedTuple):
+    """State of `restart_every`: the wrapped transformation's state and the updates counted."""
+
+    inner: Any
+    count: jax.Array
+
+
+def restart_every(inner: optax.GradientTransformation, period: int) -> optax.GradientTransformation:
+    """`inner` with its state created anew before every `period`-th update (updates period,
+    2 period, ...): as if the optimizer were built afresh at each epoch boundary, which is how
+    the release trains (a new `torch.optim.Adam` every epoch: moments and bias correction start
+    over). Inside a compiled step the choice is a `jnp.where` over the state, so the step is
+    compiled once and a resumed run restarts at the same updates as a straight one.
+
+    `inner.init` is called on the updates, which have the parameters' structure and shapes.
+    """
+    if period < 1:
+        raise ValueError(f"restart_every: period must be >= 1, got {period}")
+
+    def init(params):
+        return RestartState(inner.init(params), jnp.zeros([], jnp.int32))
+
+    def update(updates, state, params=None):
+        restart = (state.count > 0) & (state.count % period == 0)
+        fresh = inner.init(updates)
+        inner_state = jax.tree.map(lambda f, o: jnp.where(restart, f, o), fresh, state.inner)
+        updates, inner_state = inner.update(updates, inner_state, params)
+        return updates, RestartState(inner_state, state.count + 1)
+
+    return optax.GradientTransformation(init, update)
+
+
 def make_optimizer(
     learning_rate: float,
     milestones: tuple[int, ...] = (),
     decay: tuple[float, ...] = (),
-    clip_norm: float | None = 1.0,
+    clip_norm: float | None = None,
+    restart_period: int = 0,
 ) -> optax.GradientTransformation:
-    """Gradient clipping by global norm, then Adam with a piecewise-constant learning rate.
+    """Optional clipping by global norm, then Adam with a piecewise-constant learning rate.
 
     The rate is `learning_rate` until `milestones[0]`, `learning_rate * decay[0]` until
-    `milestones[1]`, then `learning_rate * decay[1]` (paper Table 3: decay [0.25, 0.1]; each factor
-    is relative to the initial rate, not compounded).
+    `milestones[1]`, then `learning_rate * decay[1]` (the release: decay [0.25, 0.1]; each factor
+    is relative to the initial rate, not compounded). The rate follows the run's step count;
+    with `restart_period`, Adam's own state (moments, bias-correction count) restarts every that
+    many steps (`restart_every`).
 
     Args:
       learning_rate: initial Adam step size.
       milestones: increasing optimizer steps at which the rate changes.
       decay: factor of the initial rate from each milestone on; same length as `milestones`.
       clip_norm: maximum global gradient norm; None or <= 0 disables clipping.
+      restart_period: steps per epoch when Adam restarts each epoch; 0: never.
 
     Returns:
       An optax transformation.
@@ -88,10 +143,13 @@ def make_optimizer(
     schedule = optax.piecewise_constant_schedule(
         learning_rate, dict(zip(milestones, ratios, strict=True))
     )
-    adam = optax.adam(schedule)
-    if clip_norm is None or clip_norm <= 0:
-        return adam
-    return optax.chain(optax.clip_by_global_norm(clip_norm), adam)
+    moments = optax.scale_by_adam()
+    if restart_period > 0:
+        moments = restart_every(moments, restart_period)
+    parts = [moments, optax.scale_by_learning_rate(schedule)]
+    if clip_norm is not None and clip_norm > 0:
+        parts.insert(0, optax.clip_by_global_norm(clip_norm))
+    return optax.chain(*parts)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,19 +161,29 @@ class OptimizerSettings:
     learning_rate: float
     milestones: tuple[int, ...] = ()
     decay: tuple[float, ...] = ()
-    clip_norm: float | None = 1.0
+    clip_norm: float | None = None
     ema_decay: float = 0.0  # > 0: keep an average of the weights (`ema_weights`); 0: none
+    restart_period: int = 0  # > 0: Adam restarts every that many steps (`restart_every`)
 
     @classmethod
     def of(cls, cfg: Any) -> OptimizerSettings:
-        """From a train config (phase 2 has no learning-rate milestones and no weight average)."""
+        """From a train config (phase 2 has no learning-rate milestones and no weight average).
+
+        The epochs must be resolved (`config.resolve_epochs`) for the restarts and decays to be
+        in it: a configuration that is not (a benchmark of the step) gets the decays that are
+        already in steps and no restart.
+        """
         milestones = tuple(getattr(cfg, "lr_milestones", ()))
-        decay = tuple(getattr(cfg, "lr_decay", ()))
+        decay = tuple(getattr(cfg, "lr_decay", ()))[: len(milestones)]
         ema_decay = float(getattr(cfg, "ema_decay", 0.0))
-        return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm, ema_decay)
+        reset = getattr(cfg, "optimizer_reset", "never")
+        period = cfg.steps_per_epoch if reset == "epoch" else 0
+        return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm, ema_decay, period)
 
     def make(self) -> optax.GradientTransformation:
-        return make_optimizer(self.learning_rate, self.milestones, self.decay, self.clip_norm)
+        return make_optimizer(
+            self.learning_rate, self.milestones, self.decay, self.clip_norm, self.restart_period
+        )
 
     def make_ema(self) -> optax.GradientTransformation:
         """The weight average: optax.ema over the parameters after each update (bias-corrected,

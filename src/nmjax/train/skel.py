@@ -26,7 +26,7 @@ from flax import nnx
 
 from nmjax import atomic, losses, metrics
 from nmjax import keypoints as kp_lib
-from nmjax.config import LossWeights, SkelTrainConfig
+from nmjax.config import LossWeights, SkelTrainConfig, resolve_epochs
 from nmjax.data.pipeline import Augmentation
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import common, parallel
@@ -54,7 +54,8 @@ def check_config(cfg: SkelTrainConfig) -> None:
         )
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size must be >= 1, got {cfg.data.batch_size}")
-    common.check_positive(cfg, ("steps", "log_every", "val_every", "val_batches", "ckpt_every"))
+    common.check_positive(cfg, ("log_every", "val_every", "val_batches", "ckpt_every"))
+    common.check_schedule(cfg)
     if not 0 <= cfg.ema_decay < 1:
         raise ValueError(
             f"ema_decay must be in [0, 1) (0: no weight average; e.g. 0.99), got {cfg.ema_decay}"
@@ -122,8 +123,8 @@ def train_step(state, batch, *, graphdef, settings: StepSettings, mesh):
 
 
 def fusion(model: KeypointDetector) -> dict[str, jax.Array]:
-    """The heatmap fusion z = w_frame h + w_st h_st + b (`DetectorConfig.fuse_init`), logged so
-    that a run shows whether the spatio-temporal branch ever contributes (w_st leaving 0)."""
+    """The heatmap fusion z = w_frame h + w_st h_st + b, logged so that a run shows how much each
+    branch contributes (both weights start near 0, N(0, 0.02^2), the bias at 0)."""
     kernel, bias = model.fuse.kernel[...], model.fuse.bias[...]
     return {"fuse_w_frame": kernel[0, 0], "fuse_w_st": kernel[1, 0], "fuse_b": bias[0]}
 
@@ -255,6 +256,8 @@ def train(
     from nmjax.data import pipeline
     from nmjax.data.synthetic import ensure_dataset
 
+    from nmjax.data.datasets import load_sequences
+
     check_config(cfg)
     if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
         # Each host would read its own clock and could stop one step before the others.
@@ -265,6 +268,8 @@ def train(
     )
     # A synthetic set is generated on first use here, explicitly: the loaders never write.
     ensure_dataset(cfg.data.name, cfg.data.root)
+    train_sequences = len(load_sequences(cfg.data.name, "train", cfg.data.root))
+    cfg = resolve_epochs(cfg, train_sequences, cfg.data.batch_size)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
     run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)

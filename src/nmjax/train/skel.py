@@ -254,9 +254,8 @@ def train(
         checkpoint stays on disk.
     """
     from nmjax.data import pipeline
-    from nmjax.data.synthetic import ensure_dataset
-
     from nmjax.data.datasets import load_sequences
+    from nmjax.data.synthetic import ensure_dataset
 
     check_config(cfg)
     if cfg.time_limit_minutes > 0 and jax.process_count() > 1:

@@ -681,17 +681,21 @@ SKELETON_TRUTH_COLUMNS = (
     ("joint_coverage_0.05", "coverage r = 0.05"),
     ("joint_coverage_0.10", "coverage r = 0.10"),
     ("edge_precision", "edge precision"),
-    (f"edge_precision_within_{metrics.TWO_HOPS}_hops", f"edge precision, {metrics.TWO_HOPS} hops"),
+    (
+        f"edge_precision_within_{metrics.TWO_HOPS}_hops",
+        f"edge precision, within {metrics.TWO_HOPS} hops",
+    ),
     ("bone_recall", "bone recall"),
     ("distinct_nodes", "distinct / kept nodes"),
 )
 SKELETON_TRUTH_NOTE = (
-    "Skeleton against the ground truth (kept nodes of skeleton.json, test split): joint "
-    "distance = mean distance from a joint to its nearest kept node (cube [-1, 1]^3; 95% CI over "
-    "sequences); coverage = share of joint-frames with a kept node within r; edge precision = "
-    "share of skeleton edges whose nodes' joints are the same or adjacent in the true tree (or "
-    f"within {metrics.TWO_HOPS} hops); bone recall = share of true bones whose joints' nodes are "
-    "the same or adjacent in the skeleton; distinct = kept nodes that are some joint's node."
+    "On the nodes the run's skeleton.json keeps, over the test split (n/a: the data lacks "
+    "joints or its meta.json lacks the true tree): joint distance = mean distance from a joint "
+    "to its nearest kept node (cube [-1, 1]^3; 95% CI over sequences); coverage = share of "
+    "joint-frames with a kept node within r; edge precision = share of skeleton edges whose "
+    "nodes' joints are the same or adjacent in the true tree (or within "
+    f"{metrics.TWO_HOPS} hops); bone recall = share of true bones whose joints' nodes are the "
+    "same or adjacent in the skeleton; distinct = kept nodes that are some joint's node."
 )
 
 

@@ -222,6 +222,12 @@ def test_skeleton_against_truth_without_a_true_tree_and_its_table():
     assert lines[3].startswith("| Full | 0.5 | n/a | 0.00866 (0.11) |")
     assert lines[3].endswith("| 1 | 1 | 1 | 3 / 3 |")
     assert evaluate.skeleton_truth_table({"Ours": {"sc": {"score": 0.5}}}) == []
+    # The experiments' phase-1 tables carry the same table, SC in front, under its own heading.
+    section = load_experiment("exp_common.py").skeleton_section({"Full": full})
+    assert section.startswith("\n## Skeleton against the ground truth\n\n")
+    assert "| model | SC | SC fixed nodes | joint distance" in section
+    assert section.endswith("| Full | n/a | n/a | 0.00866 (0.11) | 1 | 1 | 1 | 1 | 1 | 3 / 3 |\n")
+    assert load_experiment("exp_common.py").skeleton_section({"Ours": {}}) == ""
 
 
 def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):
@@ -408,7 +414,11 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
             "sc_fixed_nodes": expected["sc_fixed_nodes"]["score"],
             "tracking_cd": expected["tracking"]["mean"],
             "bone_length_variation": expected["bone_length_variation"]["mean"],
-        }
+            "joint_distance": expected["joint_distance"]["mean"],
+            "joint_distance_ci95": expected["joint_distance"]["ci95"],
+            **{key: expected[key] for key in SKELETON_KEYS[1:]},
+        },
+        nan_ok=True,  # one test sequence: no CI
     )
     assert (out / "train_skel_synth-arm.png").read_bytes()[:4] == b"\x89PNG"
     module.main(["--run", str(run), "--out", str(out), "--no-test"])

@@ -139,6 +139,19 @@ def provenance(runs: dict[str, Path]) -> str:
     return f"Command: `{command_line()}`\n\nTraining:\n{training_note(runs)}\n"
 
 
+def skeleton_section(rows: dict[str, dict]) -> str:
+    """Markdown section of the skeleton measures beside SC, one row per {label: the phase-1
+    results of `evaluate_phase1`} ("" when no row has them: no joints or no skeleton)."""
+    from nmjax.evaluate import SKELETON_TRUTH_NOTE, skeleton_truth_table
+
+    table = skeleton_truth_table(rows, sc=True)
+    if not table:
+        return ""
+    return "\n".join(
+        ["", "## Skeleton against the ground truth", "", SKELETON_TRUTH_NOTE, "", *table, ""]
+    )
+
+
 def bar_plot(path: Path, groups: list[str], series: dict[str, list], ylabel: str, title: str):
     """Grouped bars; series values are (mean, ci or None)."""
     import matplotlib.pyplot as plt

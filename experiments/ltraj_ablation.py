@@ -4,7 +4,9 @@
         --data synth-hand synth-human --steps 2000
 
 Trains (or reuses) the phase-1 variants ours and no_traj (exp_common), draws each run's skeleton
-(skeleton.json) on its example validation frame, and lists the parent arrays and SC-scores.
+(skeleton.json) on its example validation frame, and lists the parent arrays and SC-scores, with
+the skeleton against the ground truth beside them (joint distance, joint coverage, edge
+precision, bone recall, distinct nodes; `nmjax.metrics`).
 Writes experiments/results/ltraj_ablation.md and ltraj_ablation.png.
 """
 
@@ -55,13 +57,15 @@ def main() -> None:
 
     from nmjax.viz import save_figure  # selects the Agg backend
 
-    runs, rows = {}, []
+    runs, rows, evaluated = {}, [], {}
     fig = plt.figure(figsize=(7, 3.4 * len(args.data)))
     for i, data in enumerate(args.data):
         for j, (variant, label) in enumerate((("ours", "Ours"), ("no_traj", "w/o L_traj"))):
             run = ec.skel_run(data, variant, args.steps)
             runs[f"{data} {variant}"] = run
-            sc = evaluate_phase1(Detector.load(run), args.max_crops).get("sc", {})
+            results = evaluate_phase1(Detector.load(run), args.max_crops)
+            evaluated[f"{data} {label}"] = results
+            sc = results.get("sc", {})
             skeleton = json.loads((run / "skeleton.json").read_text())
             kept = int(np.sum(skeleton.get("keep", [])))
             rows.append(
@@ -80,7 +84,8 @@ def main() -> None:
         "|---|---|---|---|---|\n"
         + "\n".join(rows)
         + "\n\nPaper (Fig. 13, AIST++ and HanCo): keypoint positions almost identical, bones of "
-        "the complete loss follow the rigid parts better than without L_traj.\n",
+        "the complete loss follow the rigid parts better than without L_traj.\n"
+        + ec.skeleton_section(evaluated),
     )
 
 

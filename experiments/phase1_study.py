@@ -14,9 +14,10 @@ the variant; compare step-budget rows only among variants of equal step cost), t
 with `nmjax.evaluate.evaluate_phase1` on the test split of the body's standard set
 (`data/<data>` or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on
 another set. The row (command, change, steps, wall minutes, SC in both definitions, tracking CD,
-bone-length variation, kept nodes, the commit) replaces any earlier row of the same (data,
-variant, seed, budget) in `experiments/results/phase1_study.json`, and `phase1_study.md` is
-rewritten from it.
+bone-length variation, kept nodes, the skeleton against the ground truth: joint distance,
+joint coverage, edge precision, bone recall, distinct nodes; the commit) replaces any earlier
+row of the same (data, variant, seed, budget) in `experiments/results/phase1_study.json`, and
+`phase1_study.md` is rewritten from it.
 
 Variants that train on a bigger synthetic set generate it first (`nmjax.data.synthetic`) with
 another seed than the standard set, so no test motion is among their training sequences.
@@ -38,11 +39,11 @@ from pathlib import Path
 import exp_common
 import numpy as np
 
-from nmjax import atomic, metrics, runs
+from nmjax import atomic, runs
 from nmjax.config import apply_overrides, skel_preset, with_steps
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
-from nmjax.evaluate import evaluate_phase1, phase1_outputs
+from nmjax.evaluate import SKELETON_TRUTH_COLUMNS, evaluate_phase1
 from nmjax.runs import Detector
 
 RESULTS = Path(__file__).parent / "results"
@@ -186,23 +187,19 @@ def standard_test_detector(run: Path, data: str) -> Detector:
     )
 
 
-def localisation(detector: Detector, max_crops: int) -> dict[str, float]:
-    """What SC alone hides (keypoints bunched in one place score high): the mean distance from
-    each ground-truth joint to its nearest candidate keypoint (alpha >= 0.2 in that frame), and
-    how many distinct keypoints are the most frequent nearest one of some joint."""
-    dists, counts = [], None
-    for _, _, joints, keypoints, _ in phase1_outputs(detector, max_crops):
-        kp = keypoints.reshape(-1, *keypoints.shape[-2:])
-        gt = joints.reshape(-1, *joints.shape[-2:])
-        d = np.linalg.norm(gt[:, :, None] - kp[:, None, :, :3], axis=-1)  # (F, J, K)
-        d = np.where(kp[:, None, :, 3] >= 0.2, d, np.inf)
-        dists.append(d.min(axis=-1))
-        c = np.asarray(metrics.nearest_keypoint_counts(kp, gt)[0])
-        counts = c if counts is None else counts + c
-    return {
-        "joint_distance": float(np.mean(np.concatenate(dists))),
-        "distinct_nearest": int(len(np.unique(counts.argmax(axis=-1)))),
-    }
+# What SC alone hides (keypoints bunched in one place score high, a tree may link the wrong
+# parts): the skeleton measures of `evaluate_phase1` (`nmjax.metrics`), copied into every row.
+SKELETON_MEASURES = tuple(key for key, _ in SKELETON_TRUTH_COLUMNS) + ("skeleton_kept_nodes",)
+
+
+def skeleton_measures(results: dict) -> dict[str, float | int | None]:
+    """The skeleton measures of `evaluate_phase1`'s results as flat row entries (None where the
+    run or its data lacks them); the joint distance's CI over sequences beside it."""
+    row: dict[str, float | int | None] = {key: results.get(key) for key in SKELETON_MEASURES}
+    distance = results.get("joint_distance")
+    row["joint_distance"] = None if distance is None else distance["mean"]
+    row["joint_distance_ci95"] = None if distance is None else distance["ci95"]
+    return row
 
 
 def run_extras(run: Path, detector: Detector) -> dict[str, float | None]:
@@ -245,7 +242,6 @@ def run_variant(
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)
-    results["localisation"] = localisation(detector, max_crops)
     atomic.write_json(run / "study_eval.json", results)
     skeleton = json.loads((run / "skeleton.json").read_text())
     return {
@@ -269,7 +265,7 @@ def run_variant(
         "tracking_cd_ci95": results["tracking"]["ci95"],
         "bone_length_variation": results["bone_length_variation"]["mean"],
         "kept_nodes": results["bone_length_variation"]["kept_nodes"],
-        **results["localisation"],
+        **skeleton_measures(results),
         **run_extras(run, detector),
         "num_keypoints": len(skeleton["parents"]),
         "run": str(run),
@@ -296,6 +292,17 @@ def fmt(x, digits: int = 3) -> str:
     return "n/a" if x is None or not np.isfinite(x) else f"{x:.{digits}f}"
 
 
+def skeleton_cells(row: dict) -> str:
+    """The row's joint d, cov .05, cov .10, edge, edge 2h, bone and distinct cells; a row written
+    before the skeleton measures shows its candidate-based joint d and distinct, marked *."""
+    if "distinct_nodes" not in row:
+        old = [f"{fmt(row['joint_distance'])}*"] + ["n/a"] * 5 + [f"{row['distinct_nearest']}*"]
+        return " | ".join(old)
+    distinct = row["distinct_nodes"]
+    cells = [fmt(row[key]) for key in SKELETON_MEASURES[:-2]]
+    return " | ".join([*cells, "n/a" if distinct is None else str(distinct)])
+
+
 def write_report(rows: list[dict]) -> None:
     atomic.write_json(RESULTS / "phase1_study.json", rows)
     lines = [
@@ -311,17 +318,24 @@ def write_report(rows: list[dict]) -> None:
         "to 8 crops per test sequence). SC: Eq. 21 as published (per-frame alpha >= 0.2); SC "
         "fixed: the pruned skeleton's node set; CD: 4D-tracking Chamfer x1e4; bone var: std / "
         "mean of each bone's length over a crop, mean over bones and crops; nodes: kept / K; "
-        "joint d: mean distance from a joint to its nearest keypoint (the cube is [-1, 1]^3); "
-        "distinct: keypoints that are the most frequent nearest one of some joint (bunched "
-        "keypoints score a high SC with few distinct ones); w_st: the spatio-temporal "
-        "heatmap's fusion weight in the evaluated detector (initialised at 0); far mass: the "
-        "last validation's median share of a heatmap's mass beyond 1.5 cells of its peak. "
-        "load: the 1-minute load average when the row was written (2 cores; above 2 the run "
-        "shared them).",
+        "joint d: mean distance from a joint to its nearest kept node (the cube is [-1, 1]^3); "
+        "cov: share of joint-frames with a kept node within 0.05 / 0.10; edge: share of the "
+        "skeleton's edges whose nodes' joints are the same or adjacent in the true tree (2h: "
+        "within two hops); bone: share of true bones whose joints' nodes are the same or "
+        "adjacent in the skeleton; distinct: kept nodes that are the most frequent nearest one "
+        "of some joint (bunched keypoints score a high SC with few distinct ones). Rows marked * "
+        "were written before these measures (`nmjax.metrics`) existed: their joint d and "
+        "distinct took every keypoint with alpha >= 0.2 in a frame as a candidate, not the "
+        "skeleton's kept nodes, and the other skeleton columns are n/a. w_st: the "
+        "spatio-temporal heatmap's fusion weight in the evaluated detector (initialised at 0); "
+        "far mass: the last validation's median share of a heatmap's mass beyond 1.5 cells of "
+        "its peak. load: the 1-minute load average when the row was written (2 cores; above 2 "
+        "the run shared them).",
         "",
         "| body | variant | change | seed | budget | steps | wall min | SC | SC fixed | CD "
-        "| bone var | nodes | joint d | distinct | w_st | far mass | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| bone var | nodes | joint d | cov .05 | cov .10 | edge | edge 2h | bone | distinct "
+        "| w_st | far mass | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
@@ -329,8 +343,8 @@ def write_report(rows: list[dict]) -> None:
             f"{r['steps']} | "
             f"{r['wall_minutes']:.1f} | {fmt(r['sc'])} | {fmt(r['sc_fixed_nodes'])} | "
             f"{fmt(r['tracking_cd'], 1)} | {fmt(r['bone_length_variation'])} | "
-            f"{r['kept_nodes']}/{r['num_keypoints']} | {fmt(r['joint_distance'])} | "
-            f"{r['distinct_nearest']} | {fmt(r.get('fuse_w_st_final'), 2)} | "
+            f"{r['kept_nodes']}/{r['num_keypoints']} | {skeleton_cells(r)} | "
+            f"{fmt(r.get('fuse_w_st_final'), 2)} | "
             f"{fmt(r.get('heat_far_mass_last'), 2)} | {r['load_average']:.1f} |"
         )
     lines += ["", "## Commands", ""]

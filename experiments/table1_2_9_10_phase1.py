@@ -10,6 +10,9 @@ evaluates each on the test split with `nmjax.evaluate.evaluate_phase1`:
 - Table 2: 4D-tracking Chamfer x1e4 of ours vs the GT-supervised variant (95% CI over sequences);
 - Tables 9-10: SC-score and tracking Chamfer of ours vs without L_vol.
 
+Each table also carries, beside SC, the skeleton against the ground truth of its variants (joint
+distance, joint coverage, edge precision, bone recall, distinct nodes; `nmjax.metrics`).
+
 Writes experiments/results/table1_sc.md, table2_tracking.md, table9_10_no_vol.md and a plot each.
 """
 
@@ -69,6 +72,17 @@ def main() -> None:
             cells.append("n/a" if tr is None else fmt(tr["mean"], tr["ci95"]))
         return f"| {label} | " + " | ".join(cells) + " |"
 
+    def skeleton(*variants: tuple[str, str]) -> str:
+        """The skeleton section of `variants` ((variant, label) pairs) on every dataset."""
+        return ec.skeleton_section(
+            {
+                f"{d} {label}": results[d, variant]
+                for d in args.data
+                for variant, label in variants
+                if (d, variant) in results
+            }
+        )
+
     def series(variant: str, kind: str):
         out = []
         for d in args.data:
@@ -87,7 +101,8 @@ def main() -> None:
             + "\nOurs: the published SC (per-frame alpha >= 0.2); Ours, fixed nodes: the node"
             + " set of the pruned skeleton.\n"
             + f"\n{cols}\n{rule}\n{sc_row('ours', 'Ours')}\n"
-            + f"{sc_row('ours', 'Ours, fixed nodes', 'sc_fixed_nodes')}\n\n{PAPER['table1']}\n",
+            + f"{sc_row('ours', 'Ours, fixed nodes', 'sc_fixed_nodes')}\n\n{PAPER['table1']}\n"
+            + skeleton(("ours", "Ours")),
         )
         ec.bar_plot(
             ec.RESULTS / "table1_sc.png",
@@ -103,7 +118,8 @@ def main() -> None:
             + head
             + f"\n{cols}\n{rule}\n{cd_row('ours', 'Ours')}\n"
             + f"{cd_row('gt', 'GT (L_vol -> joint MSE)')}"
-            + f"\n\n{PAPER['table2']}\n",
+            + f"\n\n{PAPER['table2']}\n"
+            + skeleton(("ours", "Ours"), ("gt", "GT (L_vol -> joint MSE)")),
         )
         ec.bar_plot(
             ec.RESULTS / "table2_tracking.png",
@@ -120,7 +136,8 @@ def main() -> None:
             + f"\n## SC-score (std over joints)\n\n{cols}\n{rule}\n{sc_row('ours', 'Ours')}\n"
             + f"{sc_row('no_vol', 'w/o L_vol')}\n\n## Tracking CD x1e4 (95% CI)\n\n"
             + f"{cols}\n{rule}\n{cd_row('ours', 'Ours')}\n{cd_row('no_vol', 'w/o L_vol')}\n\n"
-            + f"{PAPER['table9_10']}\n",
+            + f"{PAPER['table9_10']}\n"
+            + skeleton(("ours", "Ours"), ("no_vol", "w/o L_vol")),
         )
         ec.bar_plot(
             ec.RESULTS / "table9_10_no_vol.png",

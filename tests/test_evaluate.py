@@ -15,6 +15,15 @@ from nmjax.data.voxelize import voxelize
 from nmjax.tasks import Interpolators
 
 K = len(PARENTS)
+SKELETON_KEYS = (
+    "joint_distance",
+    "joint_coverage_0.05",
+    "joint_coverage_0.10",
+    "edge_precision",
+    "edge_precision_within_2_hops",
+    "bone_recall",
+    "distinct_nodes",
+)
 
 
 def test_confidence_interval_is_the_student_t_half_width():
@@ -124,13 +133,101 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
     assert np.isfinite(p1["tracking"]["mean"])
     bones = p1["bone_length_variation"]
     assert np.isfinite(bones["mean"]) and bones["mean"] >= 0 and bones["kept_nodes"] >= 1
+    for key in SKELETON_KEYS:
+        assert key in p1, key
+    assert 0.0 < p1["joint_distance"]["mean"] < 2 * np.sqrt(3) and p1["joint_distance"]["n"] == 1
+    assert 1 <= p1["distinct_nodes"] <= p1["skeleton_kept_nodes"] == K
     assert set(results["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
     for by_rate in results["interpolation"].values():
         assert all(np.isfinite(by_rate[r]["mean"]) and by_rate[r]["n"] == 1 for r in ("3", "5"))
     tables = (out / "tables.md").read_text()
-    for row in ("| Ours |", "| VRNN |", "| Lerp |", "| Slerp |", "SR = 5", "fixed node set"):
+    for row in (
+        "| Ours |",
+        "| VRNN |",
+        "| Lerp |",
+        "| Slerp |",
+        "SR = 5",
+        "fixed node set",
+        "Skeleton against the ground truth",
+        "bone recall",
+    ):
         assert row in tables
     assert (out / "mcd.png").stat().st_size > 0
+
+
+def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
+    runs, tmp_path, capsys
+):
+    """`nmjax evaluate --run SKEL_RUN`: the skeleton measures in results.json and tables.md, on
+    the nodes skeleton.json keeps (not a new pruning of its intensities)."""
+    import shutil
+
+    from nmjax import cli
+
+    run = tmp_path / "skel"
+    shutil.copytree(runs["skel"], run)
+    path = run / "skeleton.json"
+    stored = json.loads(path.read_text())
+    # Keep only keypoints 0, 1 and 2 (the chain 0 - 1 - 2); 3, 4, 5 re-attached to 2, 1, 1.
+    stored.update(keep=[True, True, True, False, False, False], pruned_parents=[0, 0, 1, 2, 1, 1])
+    path.write_text(json.dumps(stored))
+    out = tmp_path / "eval"
+    assert cli.main(["evaluate", "--run", str(run), "--max-crops", "1", "--out", str(out)]) == 0
+    p1 = json.loads((out / "results.json").read_text())["phase1"]
+    assert p1["skeleton_kept_nodes"] == 3 and p1["bone_length_variation"]["kept_nodes"] == K
+    assert 1 <= p1["distinct_nodes"] <= 3
+    for key in SKELETON_KEYS[1:-1]:
+        assert 0.0 <= p1[key] <= 1.0, key
+    assert p1["edge_precision"] <= p1["edge_precision_within_2_hops"]
+    # The joint distance is the one of the stored node set, recomputed from the same crops.
+    det = evaluate.Detector.load(run)
+    (name, _, joints, keypoints, _), *rest = evaluate.phase1_outputs(det, max_crops=1)
+    assert not rest  # one test sequence
+    expected = float(metrics.joint_distance(keypoints, joints, np.array(stored["keep"])))
+    assert p1["joint_distance"]["per_sequence"] == {name: pytest.approx(expected, rel=1e-6)}
+    assert p1["joint_distance"]["mean"] == pytest.approx(expected, rel=1e-6)
+    tables = (out / "tables.md").read_text()
+    assert "## Skeleton against the ground truth" in tables and " / 3 |" in tables
+    # A skeleton.json without the kept nodes is refused with the command that rewrites it.
+    del stored["keep"]
+    path.write_text(json.dumps(stored))
+    capsys.readouterr()
+    assert cli.main(["evaluate", "--run", str(run), "--max-crops", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "lacks `keep`" in err and "nmjax extract-skeleton --run" in err
+
+
+def test_skeleton_against_truth_without_a_true_tree_and_its_table():
+    """Without meta.json parents only the tree-blind measures are reported; the table says n/a."""
+    gt = np.float32([[0, 0, 0], [0.3, 0, 0], [0.6, 0, 0]])[None, None]  # (C=1, T=1, J=3, 3)
+    kp = np.concatenate([gt, np.ones((1, 1, 3, 1), np.float32)], -1)
+    seqs = [gt, gt + np.float32(0.01)]
+    keypoints = [kp, kp]
+    skeleton = (np.array([0, 0, 1]), np.ones(3, bool))
+    out = evaluate.skeleton_against_truth(keypoints, seqs, skeleton, None, ["a", "b"])
+    assert "edge_precision" not in out and "bone_recall" not in out
+    assert out["joint_distance"]["per_sequence"]["a"] == 0.0
+    assert out["joint_distance"]["mean"] == pytest.approx(np.sqrt(3) * 0.01 / 2, rel=1e-5)
+    assert out["joint_distance"]["n"] == 2 and out["distinct_nodes"] == 3
+    assert out["joint_coverage_0.05"] == 1.0 and out["skeleton_kept_nodes"] == 3
+    full = evaluate.skeleton_against_truth(
+        keypoints, seqs, skeleton, np.array([0, 0, 1]), ["a", "b"]
+    )
+    assert full["edge_precision"] == 1.0 and full["bone_recall"] == 1.0
+    lines = evaluate.skeleton_truth_table(
+        {"Ours": out, "Full": {**full, "sc": {"score": 0.5}}}, sc=True
+    )
+    assert lines[0].startswith("| model | SC | SC fixed nodes | joint distance")
+    assert lines[2].split(" | ")[1:3] == ["n/a", "n/a"] and "| n/a | n/a | n/a |" in lines[2]
+    assert lines[3].startswith("| Full | 0.5 | n/a | 0.00866 (0.11) |")
+    assert lines[3].endswith("| 1 | 1 | 1 | 3 / 3 |")
+    assert evaluate.skeleton_truth_table({"Ours": {"sc": {"score": 0.5}}}) == []
+    # The experiments' phase-1 tables carry the same table, SC in front, under its own heading.
+    section = load_experiment("exp_common.py").skeleton_section({"Full": full})
+    assert section.startswith("\n## Skeleton against the ground truth\n\n")
+    assert "| model | SC | SC fixed nodes | joint distance" in section
+    assert section.endswith("| Full | n/a | n/a | 0.00866 (0.11) | 1 | 1 | 1 | 1 | 1 | 3 / 3 |\n")
+    assert load_experiment("exp_common.py").skeleton_section({"Ours": {}}) == ""
 
 
 def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):
@@ -317,7 +414,11 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
             "sc_fixed_nodes": expected["sc_fixed_nodes"]["score"],
             "tracking_cd": expected["tracking"]["mean"],
             "bone_length_variation": expected["bone_length_variation"]["mean"],
-        }
+            "joint_distance": expected["joint_distance"]["mean"],
+            "joint_distance_ci95": expected["joint_distance"]["ci95"],
+            **{key: expected[key] for key in SKELETON_KEYS[1:]},
+        },
+        nan_ok=True,  # one test sequence: no CI
     )
     assert (out / "train_skel_synth-arm.png").read_bytes()[:4] == b"\x89PNG"
     module.main(["--run", str(run), "--out", str(out), "--no-test"])

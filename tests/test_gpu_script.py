@@ -98,6 +98,13 @@ def test_dry_run_summary_has_every_stage_and_real_results(dry_run):
         assert 0.0 < phase1[key]["score"] <= 1.0, key
     assert math.isfinite(phase1["tracking"]["mean"])
     assert math.isfinite(phase1["bone_length_variation"]["mean"])
+    # The skeleton against synth-arm's true tree, on the nodes the run's skeleton.json keeps.
+    assert math.isfinite(phase1["joint_distance"]["mean"])
+    for key in ("joint_coverage_0.10", "bone_recall"):
+        assert 0.0 <= phase1[key] <= 1.0, key
+    edges = phase1["edge_precision_within_2_hops"]  # nan only for a skeleton of one kept node
+    assert 0.0 <= edges <= 1.0 or (math.isnan(edges) and phase1["skeleton_kept_nodes"] == 1)
+    assert 1 <= phase1["distinct_nodes"] <= phase1["skeleton_kept_nodes"]
     assert summary["curves"]["steps"] == 4 and "loss" in summary["curves"]["train"]
 
     targets = summary["targets"]

@@ -295,3 +295,193 @@ def test_set_distance_hand_cases():
         metrics.set_distance(real[:0], real, root)
     with pytest.raises(ValueError, match=r"\(N, T, K, C\)"):
         metrics.set_distance(real[0], real, root)
+
+
+# --- skeleton against the ground truth ----------------------------------------------------------
+
+CHAIN = np.array([0, 0, 1])  # the true tree of a three-joint chain 0 - 1 - 2
+
+
+def chain_frames(frames: int = 3) -> np.ndarray:
+    """(F, 3, 3) joints of a straight chain 0.3 apart along x, translated frame by frame."""
+    rest = np.array([[0.0, 0, 0], [0.3, 0, 0], [0.6, 0, 0]])
+    shift = np.linspace(-0.2, 0.2, frames)[:, None, None] * np.array([1.0, 0.5, -0.3])
+    return (rest + shift).astype(np.float32)
+
+
+def with_alpha(positions: np.ndarray) -> np.ndarray:
+    return np.concatenate([positions, np.ones((*positions.shape[:-1], 1), np.float32)], -1)
+
+
+def test_keypoints_on_the_joints_of_a_chain_score_one_everywhere():
+    gt = chain_frames()
+    kp = with_alpha(gt)  # keypoint k sits on joint k in every frame
+    kept = np.ones(3, bool)
+    scores = metrics.skeleton_agreement(kp, gt, kept, CHAIN, CHAIN)
+    assert scores == pytest.approx(
+        {
+            "joint_distance": 0.0,
+            "joint_coverage_0.05": 1.0,
+            "joint_coverage_0.10": 1.0,
+            "edge_precision": 1.0,
+            "edge_precision_within_2_hops": 1.0,
+            "bone_recall": 1.0,
+            "distinct_nodes": 3,
+        }
+    )
+    assert isinstance(scores["distinct_nodes"], int)
+    assert metrics.semantic_consistency(kp, gt) == pytest.approx(1.0)
+    np.testing.assert_array_equal(metrics.joint_nodes(kp, gt, kept), [0, 1, 2])
+    np.testing.assert_array_equal(metrics.node_joints(kp, gt), [0, 1, 2])
+    # Without the trees only the tree-blind measures are reported.
+    assert set(metrics.skeleton_agreement(kp, gt, kept)) == {
+        "joint_distance",
+        "joint_coverage_0.05",
+        "joint_coverage_0.10",
+        "distinct_nodes",
+    }
+
+
+def test_a_skeleton_linking_the_two_ends_of_a_chain_loses_precision():
+    gt = chain_frames()
+    kp, kept = with_alpha(gt), np.ones(3, bool)
+    # Skeleton edges 1 - 0 (a true bone) and 2 - 0 (joints two hops apart in the true chain):
+    # precision 1/2, within two hops 1. True bones 1 - 0 (adjacent in the skeleton) and 2 - 1
+    # (two hops apart in it): recall 1/2. Where the nodes are is unchanged.
+    ends = np.array([0, 0, 0])
+    scores = metrics.skeleton_agreement(kp, gt, kept, ends, CHAIN)
+    assert scores["edge_precision"] == pytest.approx(0.5)
+    assert scores["edge_precision_within_2_hops"] == pytest.approx(1.0)
+    assert scores["bone_recall"] == pytest.approx(0.5)
+    assert scores["joint_distance"] == 0.0 and scores["distinct_nodes"] == 3
+    # A four-joint chain whose skeleton links joint 0 to joint 3 (three hops): 2 of 3 edges are
+    # right, with or without the second hop.
+    chain4 = np.array([0, 0, 1, 2])
+    gt4 = np.concatenate([gt, gt[:, 2:] + np.float32([0.3, 0, 0])], axis=1)
+    link = np.array([0, 0, 1, 0])
+    for hops in (1, 2):
+        precision = metrics.edge_precision(
+            with_alpha(gt4), gt4, np.ones(4, bool), link, chain4, hops
+        )
+        assert float(precision) == pytest.approx(2 / 3)
+    # Only one kept node: no edge, nan precision; a one-joint tree: no bone, nan recall.
+    lone = np.array([True, False, False])
+    assert np.isnan(float(metrics.edge_precision(kp, gt, lone, CHAIN, CHAIN)))
+    one = gt[:, :1]
+    assert np.isnan(float(metrics.bone_recall(kp, one, kept, CHAIN, np.array([0]))))
+
+
+def test_keypoints_bunched_at_one_joint_lose_coverage_and_distinct_nodes_but_keep_sc():
+    gt = chain_frames()
+    # All three keypoints within 0.04 of joint 0, moving with it: every joint keeps keypoint 0 as
+    # its nearest in every frame, so SC is 1, yet only joint 0 is covered and one node is used.
+    offsets = np.float32([[0, 0, 0], [0, 0.02, 0], [0, 0.04, 0]])
+    kp = with_alpha(gt[:, :1] + offsets)
+    kept = np.ones(3, bool)
+    assert metrics.semantic_consistency(kp, gt) == pytest.approx(1.0)
+    scores = metrics.skeleton_agreement(kp, gt, kept, CHAIN, CHAIN)
+    assert scores["joint_distance"] == pytest.approx((0.0 + 0.3 + 0.6) / 3, abs=1e-6)
+    assert scores["joint_coverage_0.05"] == pytest.approx(1 / 3)
+    assert scores["joint_coverage_0.10"] == pytest.approx(1 / 3)
+    assert scores["distinct_nodes"] == 1
+    # Every joint maps onto the same node and every node onto joint 0: the tree measures see no
+    # wrong edge or missing bone, which is why coverage and distinct nodes stand beside them.
+    assert scores["bone_recall"] == 1.0 and scores["edge_precision"] == 1.0
+    # Coverage by radius: joint 1 lies 0.3 from the bunch.
+    cover = metrics.joint_coverage(kp, gt, kept, 0.3001)
+    assert float(cover) == pytest.approx(2 / 3)
+
+
+def test_only_kept_nodes_count():
+    gt = chain_frames()
+    kp = with_alpha(gt)
+    keep = np.array([True, True, False])  # keypoint 2, on joint 2, is pruned
+    scores = metrics.skeleton_agreement(kp, gt, keep, CHAIN, CHAIN)
+    # Joint 2's nearest kept node is keypoint 1, 0.3 away.
+    assert scores["joint_distance"] == pytest.approx(0.1, abs=1e-6)
+    assert scores["joint_coverage_0.10"] == pytest.approx(2 / 3)
+    assert scores["distinct_nodes"] == 2
+    # One edge between kept nodes (1 - 0, right); bone 2 - 1 maps onto node 1 alone: recalled.
+    assert scores["edge_precision"] == 1.0 and scores["bone_recall"] == 1.0
+    np.testing.assert_array_equal(metrics.joint_nodes(kp, gt, keep), [0, 1, 1])
+    with pytest.raises(ValueError, match="kept nodes"):
+        metrics.joint_distance(kp, gt, keep[:2])
+    with pytest.raises(ValueError, match="same frames"):
+        metrics.joint_distance(kp[:2], gt, keep)
+    with pytest.raises(ValueError, match="true parents"):
+        metrics.skeleton_agreement(kp, gt, keep, CHAIN, np.array([0, 0]))
+
+
+def test_most_frequent_node_and_its_tie_break():
+    # Joint 0 at the origin; keypoint 0 at x = 0.1 in frames 0-1 and 0.5 in frames 2-3, keypoint
+    # 1 the other way round but at 0.2: each is nearest in two frames, and the tie goes to the
+    # smaller mean distance, keypoint 0 (0.3 against 0.35), whatever the keypoint order.
+    gt = np.zeros((4, 1, 3), np.float32)
+    kp = np.zeros((4, 2, 4), np.float32)
+    kp[:, 0, 0] = [0.1, 0.1, 0.5, 0.5]
+    kp[:, 1, 0] = [0.6, 0.6, 0.2, 0.2]
+    kept = np.ones(2, bool)
+    assert int(metrics.joint_nodes(kp, gt, kept)[0]) == 0
+    assert int(metrics.joint_nodes(kp[:, ::-1], gt, kept)[0]) == 1
+
+
+def test_tree_within_counts_hops():
+    chain4 = np.array([0, 0, 1, 2])
+    hops = np.abs(np.arange(4)[:, None] - np.arange(4)[None])  # hop distance along the chain
+    for h in (0, 1, 2, 3):
+        np.testing.assert_array_equal(metrics.tree_within(chain4, h), hops <= h)
+    star = np.array([0, 0, 0, 0])
+    within = np.asarray(metrics.tree_within(star, 1))
+    assert within[0].all() and not within[1, 2] and metrics.tree_within(star, 2).all()
+
+
+def test_skeleton_measures_under_jit_and_vmap():
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(-1, 1, (3, 4, 5, 3)).astype(np.float32)  # (sequences, F, J, 3)
+    kp = rng.uniform(-1, 1, (3, 4, 6, 4)).astype(np.float32)
+    kept = np.array([True, True, False, True, True, True])
+    parents, true_parents = np.array([0, 0, 1, 1, 3, 4]), np.array([0, 0, 1, 2, 0])
+    per_sequence = jax.vmap(metrics.joint_distance, in_axes=(0, 0, None))(kp, gt, kept)
+    expected = [float(metrics.joint_distance(kp[s], gt[s], kept)) for s in range(3)]
+    np.testing.assert_allclose(per_sequence, expected, rtol=1e-6)
+    d = np.linalg.norm(gt[:, :, :, None] - kp[:, :, None, :, :3], axis=-1)[..., kept]
+    assert float(metrics.joint_distance(kp, gt, kept)) == pytest.approx(d.min(-1).mean(), 1e-6)
+    jitted = jax.jit(metrics.edge_precision, static_argnames="hops")
+    for hops in (1, 2):
+        assert float(jitted(kp, gt, kept, parents, true_parents, hops=hops)) == pytest.approx(
+            float(metrics.edge_precision(kp, gt, kept, parents, true_parents, hops))
+        )
+    coverage = jax.jit(metrics.joint_coverage)(kp, gt, kept, 0.5)
+    assert float(coverage) == pytest.approx(np.mean(d.min(-1) <= 0.5))
+    recall = jax.jit(metrics.bone_recall)(kp, gt, kept, parents, true_parents)
+    assert 0.0 <= float(recall) <= 1.0
+    assert 1 <= int(jax.jit(metrics.distinct_nodes)(kp, gt, kept)) <= 5
+
+
+def random_tree(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Parents of a random tree over n vertices, rooted at a random vertex."""
+    order = rng.permutation(n)
+    parents = np.empty(n, int)
+    parents[order[0]] = order[0]
+    for i in range(1, n):
+        parents[order[i]] = order[rng.integers(0, i)]
+    return parents
+
+
+@SETTINGS
+@given(seed=st.integers(0, 2**31 - 1), perm=st.permutations(range(6)))
+def test_skeleton_measures_do_not_depend_on_the_keypoint_order(seed, perm):
+    rng = np.random.default_rng(seed)
+    gt = rng.uniform(-1, 1, (4, 5, 3)).astype(np.float32)  # F = 4 frames, J = 5 joints
+    kp = rng.uniform(-1, 1, (4, 6, 4)).astype(np.float32)  # K = 6 keypoints
+    kept = rng.random(6) < 0.7
+    kept[rng.integers(6)] = True
+    parents, true_parents = random_tree(rng, 6), random_tree(rng, 5)
+    scores = metrics.skeleton_agreement(kp, gt, kept, parents, true_parents)
+    # Keypoint i of the permuted set is keypoint perm[i]; its parent is renamed the same way.
+    perm = np.asarray(perm)
+    rename = np.argsort(perm)
+    permuted = metrics.skeleton_agreement(
+        kp[:, perm], gt, kept[perm], rename[parents[perm]], true_parents
+    )
+    assert permuted == pytest.approx(scores, rel=1e-6, nan_ok=True)

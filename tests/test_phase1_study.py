@@ -68,3 +68,49 @@ def test_base_variant_is_the_cpu_preset_counted_in_steps(study):
     fixed = study.variant_config("synth-arm", "vol10_temp0.5", 0.0, 1, steps=600)
     assert (fixed.steps, fixed.time_limit_minutes, fixed.seed) == (600, 0.0, 1)
     assert (fixed.weights.vol, fixed.model.keypoint_temperature) == (10.0, 0.5)
+
+
+def test_report_carries_the_skeleton_measures_and_marks_rows_written_before_them(
+    study, tmp_path, monkeypatch
+):
+    import json
+
+    committed = json.loads((study.RESULTS / "phase1_study.json").read_text())
+    old = committed[0]
+    results = {
+        "joint_distance": {"mean": 0.0812, "ci95": 0.004, "n": 3, "per_sequence": {}},
+        "joint_coverage_0.05": 0.25,
+        "joint_coverage_0.10": 0.5,
+        "edge_precision": 0.75,
+        "edge_precision_within_2_hops": 1.0,
+        "bone_recall": 0.6,
+        "distinct_nodes": 7,
+        "skeleton_kept_nodes": 9,
+    }
+    measures = study.skeleton_measures(results)
+    assert measures["joint_distance"] == 0.0812 and measures["joint_distance_ci95"] == 0.004
+    assert measures["distinct_nodes"] == 7 and measures["skeleton_kept_nodes"] == 9
+    assert study.skeleton_measures({})["edge_precision"] is None  # data without joints
+    new = {k: v for k, v in old.items() if k not in ("joint_distance", "distinct_nearest")}
+    new = {**new, "variant": "new", **measures}
+    monkeypatch.setattr(study, "RESULTS", tmp_path)
+    study.write_report([old, new])
+    table = (tmp_path / "phase1_study.md").read_text().splitlines()
+    header = next(line for line in table if line.startswith("| body |"))
+    old_line = next(
+        line for line in table if line.startswith(f"| {old['data']} | {old['variant']}")
+    )
+    new_line = next(line for line in table if line.startswith(f"| {new['data']} | new |"))
+    columns = [c.strip() for c in header.split("|")]
+    assert len(columns) == len(new_line.split("|")) == len(old_line.split("|"))
+    cell = dict(zip(columns, (c.strip() for c in new_line.split("|")), strict=True))
+    assert (cell["joint d"], cell["cov .05"], cell["edge 2h"], cell["distinct"]) == (
+        "0.081",
+        "0.250",
+        "1.000",
+        "7",
+    )
+    cell = dict(zip(columns, (c.strip() for c in old_line.split("|")), strict=True))
+    assert cell["joint d"] == f"{old['joint_distance']:.3f}*" and cell["edge"] == "n/a"
+    assert cell["distinct"] == f"{old['distinct_nearest']}*"
+    assert json.loads((tmp_path / "phase1_study.json").read_text())[1]["bone_recall"] == 0.6

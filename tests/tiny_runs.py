@@ -36,7 +36,12 @@ def make_runs(root: Path) -> dict[str, Path]:
     ckpt.save(1, state, metrics={skel.BEST_METRIC: 1.0})
     ckpt.close()
     skeleton = skeleton_from_parents(np.array(PARENTS))
-    skeleton.save(skel_run / "skeleton.json", intensities=np.full(len(PARENTS), 0.5))
+    skeleton.save(  # every keypoint bright enough to be kept, as extract_run_skeleton records it
+        skel_run / "skeleton.json",
+        intensities=np.full(len(PARENTS), 0.5),
+        pruned_parents=list(PARENTS),
+        keep=[True] * len(PARENTS),
+    )
     runs.export_keypoints(skel_run, "test")
     runs = {"data": data, "skel": skel_run}
     for kind in ("nm", "vrnn"):

@@ -8,6 +8,10 @@
   ("sc": in each frame keypoints with alpha < 0.2 are no candidates) and with the fixed node set
   of the pruned skeleton ("sc_fixed_nodes").
 - Bone-length variation of the pruned skeleton over the same crops (std / mean length per bone).
+- The skeleton against the ground truth, on data with joints (DESIGN §9; the kept nodes and
+  pruned tree stored in the run's skeleton.json, the true tree from the dataset's meta.json):
+  joint distance (mean and 95% CI over test sequences), joint coverage at radius 0.05 and 0.10,
+  edge precision (and within two hops), bone recall and distinct nodes (`metrics`).
 - 4D-tracking Chamfer x1e4 (Table 2): reconstruction of every crop thresholded at 0.5 against its
   voxels, averaged per sequence; mean and 95% confidence interval over test sequences.
 - Interpolation M-CD (Eq. 22, Tables 11-12) at sampling rates SR = 3, 5, ..., 30 for Ours (the
@@ -121,25 +125,98 @@ def phase1_outputs(detector: Detector, max_crops: int = 8, split: str = "test"):
         yield seq.name, voxels, joints, keypoints, recon
 
 
+def true_tree(detector: Detector, num_joints: int) -> np.ndarray | None:
+    """The ground-truth kinematic tree of the detector's dataset: the `parents` of its meta.json
+    (the root its own parent), or None when the dataset does not record them.
+
+    Raises:
+      ValueError: the recorded parents are not a tree over the `num_joints` joints.
+    """
+    from nmjax.data.layout import dataset_root, read_meta
+    from nmjax.skeleton import skeleton_from_parents
+
+    data = detector.cfg.data
+    parents = read_meta(data.name, data.root).get("parents")
+    if parents is None:
+        return None
+    path = dataset_root(data.name, data.root) / "meta.json"
+    try:
+        tree = skeleton_from_parents(np.asarray(parents))
+    except ValueError as err:
+        raise ValueError(f"{path}: `parents` is not a tree ({err}); fix the file") from err
+    if tree.num_keypoints != num_joints:
+        raise ValueError(
+            f"{path}: `parents` names {tree.num_keypoints} joints but the joint files hold "
+            f"{num_joints}; regenerate or re-prepare the dataset"
+        )
+    return np.asarray(tree.parents)
+
+
+def skeleton_against_truth(
+    keypoints: list[np.ndarray],
+    joints: list[np.ndarray],
+    skeleton: tuple[np.ndarray, np.ndarray],
+    true_parents: np.ndarray | None,
+    names: list[str],
+) -> dict[str, Any]:
+    """The skeleton measures of `metrics.skeleton_agreement` over every test frame, named as
+    results.json names them.
+
+    The joint distance is the mean over test sequences of each sequence's mean over its joints
+    and frames (sequences weigh alike, as in the tracking Chamfer), with the 95% CI over
+    sequences; the other measures pool all the frames (a node's joint and a joint's node are the
+    most frequent over the whole test split).
+
+    Args:
+      keypoints: per sequence, (C, T, K, 4) keypoints of its crops.
+      joints: per sequence, (C, T, J, 3) ground-truth joints of the same crops.
+      skeleton: (pruned parents (K,), kept nodes (K,) bool), `runs.kept_skeleton`.
+      true_parents: (J,) the true tree, or None (edge precision and bone recall left out).
+      names: the sequence names.
+
+    Returns:
+      {"joint_distance": {"mean", "ci95", "n", "per_sequence"}, "joint_coverage_0.05",
+       "joint_coverage_0.10", "edge_precision", "edge_precision_within_2_hops", "bone_recall"
+       (the last three only with `true_parents`), "distinct_nodes", "skeleton_kept_nodes"}.
+    """
+    parents, kept = skeleton
+    per_seq = {
+        name: float(metrics.joint_distance(kp, gt, kept))
+        for name, kp, gt in zip(names, keypoints, joints, strict=True)
+    }
+    flat_kp = np.concatenate([kp.reshape(-1, *kp.shape[-2:]) for kp in keypoints])
+    flat_gt = np.concatenate([gt.reshape(-1, *gt.shape[-2:]) for gt in joints])
+    scores = metrics.skeleton_agreement(flat_kp, flat_gt, kept, parents, true_parents)
+    scores["joint_distance"] = {**summarize(list(per_seq.values())), "per_sequence": per_seq}
+    scores["skeleton_kept_nodes"] = int(kept.sum())
+    return scores
+
+
 def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test") -> dict:
-    """SC-score (Table 1), 4D-tracking Chamfer x1e4 (Table 2) and bone-length variation on
-    `split`.
+    """SC-score (Table 1), 4D-tracking Chamfer x1e4 (Table 2), bone-length variation and the
+    skeleton against the ground truth on `split`.
 
     SC is reported in both definitions (`metrics.SC_NODES`): "sc" is the published one
     (per-frame candidates with alpha >= 0.2), "sc_fixed_nodes" the fixed node set of the pruned
     skeleton. The bone-length variation (`metrics.bone_length_variation`) is measured on the
     pruned tree of the run's `skeleton.json` over the same crops (each crop one sequence of T
-    frames); it is absent when the run has no skeleton yet.
+    frames); it is absent when the run has no skeleton yet. The skeleton measures
+    (`skeleton_against_truth`) take the kept nodes and pruned tree stored in skeleton.json
+    (`runs.kept_skeleton`) and the true tree of the dataset's meta.json (`true_tree`); they are
+    absent without ground-truth joints or a skeleton.
 
     Returns:
       {"sc": {"score", "std_over_joints", "per_sequence"}, "sc_fixed_nodes": {same} (both absent
        without ground-truth joints), "tracking": {"mean", "ci95", "n", "per_sequence"},
-       "bone_length_variation": {"mean", "kept_nodes", "per_sequence"}}.
+       "bone_length_variation": {"mean", "kept_nodes", "per_sequence"}, and the keys of
+       `skeleton_against_truth`}.
     """
     sc = metrics.SemanticConsistency()
     per_seq_sc: dict[str, dict[str, float]] = {"per_frame": {}, "fixed": {}}
     per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
+    truth: dict[str, list] = {"names": [], "keypoints": [], "joints": []}
     skeleton = runs.pruned_skeleton(detector.run)
+    kept_skeleton = runs.kept_skeleton(detector.run)
     for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
         per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
@@ -150,6 +227,8 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
                 per_seq_sc[nodes][name] = metrics.semantic_consistency(
                     keypoints, joints, nodes=nodes
                 )
+            for key, value in (("names", name), ("keypoints", keypoints), ("joints", joints)):
+                truth[key].append(value)
         if skeleton is not None:
             per_seq_bones[name] = float(metrics.bone_length_variation(keypoints, skeleton[0]))
             all_keypoints.append(keypoints)
@@ -170,6 +249,13 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
             "kept_nodes": int(kept.sum()),
             "per_sequence": per_seq_bones,
         }
+    if kept_skeleton is not None and truth["names"]:
+        true_parents = true_tree(detector, truth["joints"][0].shape[-2])
+        out.update(
+            skeleton_against_truth(
+                truth["keypoints"], truth["joints"], kept_skeleton, true_parents, truth["names"]
+            )
+        )
     return out
 
 
@@ -589,6 +675,55 @@ def fmt(value: float, ci: float | None = None) -> str:
     return text if ci is None else f"{text} ({ci:.3g})" if np.isfinite(ci) else f"{text} (n/a)"
 
 
+# The skeleton measures in every phase-1 table: (results key, column title).
+SKELETON_TRUTH_COLUMNS = (
+    ("joint_distance", "joint distance (95% CI)"),
+    ("joint_coverage_0.05", "coverage r = 0.05"),
+    ("joint_coverage_0.10", "coverage r = 0.10"),
+    ("edge_precision", "edge precision"),
+    (
+        f"edge_precision_within_{metrics.TWO_HOPS}_hops",
+        f"edge precision, within {metrics.TWO_HOPS} hops",
+    ),
+    ("bone_recall", "bone recall"),
+    ("distinct_nodes", "distinct / kept nodes"),
+)
+SKELETON_TRUTH_NOTE = (
+    "On the nodes the run's skeleton.json keeps, over the test split (n/a: the data lacks "
+    "joints or its meta.json lacks the true tree): joint distance = mean distance from a joint "
+    "to its nearest kept node (cube [-1, 1]^3; 95% CI over sequences); coverage = share of "
+    "joint-frames with a kept node within r; edge precision = share of skeleton edges whose "
+    "nodes' joints are the same or adjacent in the true tree (or within "
+    f"{metrics.TWO_HOPS} hops); bone recall = share of true bones whose joints' nodes are the "
+    "same or adjacent in the skeleton; distinct = kept nodes that are some joint's node."
+)
+
+
+def skeleton_truth_table(rows: dict[str, dict], sc: bool = False) -> list[str]:
+    """Markdown lines of one table of the skeleton measures (`SKELETON_TRUTH_COLUMNS`), one row
+    per {label: phase-1 results of `evaluate_phase1`}; `sc` puts both SC-scores in front.
+    "n/a" where a row lacks a measure; no lines when no row has any."""
+    if not any("joint_distance" in p1 for p1 in rows.values()):
+        return []
+    titles = (["SC", "SC fixed nodes"] if sc else []) + [t for _, t in SKELETON_TRUTH_COLUMNS]
+    lines = ["| model | " + " | ".join(titles) + " |", "|---|" + "---|" * len(titles)]
+    for label, p1 in rows.items():
+        cells = [fmt(p1[k]["score"]) if k in p1 else "n/a" for k in ("sc", "sc_fixed_nodes")]
+        cells = cells if sc else []
+        for key, _ in SKELETON_TRUTH_COLUMNS:
+            value = p1.get(key)
+            if value is None:
+                cells.append("n/a")
+            elif key == "joint_distance":
+                cells.append(fmt(value["mean"], value["ci95"]))
+            elif key == "distinct_nodes":
+                cells.append(f"{value} / {p1['skeleton_kept_nodes']}")
+            else:
+                cells.append(fmt(value))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown_tables(results: dict) -> str:
     """The evaluation as markdown: Table 1, Table 2 and Tables 11-12 layouts."""
     lines = [f"# Evaluation of {results['run']}", ""]
@@ -616,6 +751,9 @@ def markdown_tables(results: dict) -> str:
             f"| Ours | {fmt(bones['mean'])} | {bones['kept_nodes']} |",
             "",
         ]
+    table = skeleton_truth_table({"Ours": p1})
+    if table:
+        lines += ["## Skeleton against the ground truth", "", SKELETON_TRUTH_NOTE, "", *table, ""]
     if "tracking" in p1:
         tr = p1["tracking"]
         lines += [

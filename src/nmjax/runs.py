@@ -37,6 +37,7 @@ from nmjax.skeleton import (
     extract_skeleton,
     load_skeleton,
     prune,
+    skeleton_from_parents,
 )
 from nmjax.train import common, dyn, parallel, skel
 
@@ -367,6 +368,45 @@ def pruned_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
         return np.asarray(skeleton.parents), np.ones(skeleton.num_keypoints, bool)
     pruned, keep = prune(skeleton, intensities)
     return np.asarray(pruned.parents), keep
+
+
+def kept_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """(pruned parents, kept-node mask) exactly as `extract_run_skeleton` stored them in the
+    run's skeleton.json (`pruned_parents`, `keep`), or None when the run has no skeleton.json.
+
+    Nothing is pruned again: these are the nodes the run's skeleton keeps, whatever threshold
+    it was extracted with.
+
+    Raises:
+      ValueError: the file lacks the two fields, or they do not describe a tree over the kept
+        nodes with the root kept (names the command that rewrites the file).
+    """
+    path = Path(run) / SKELETON_FILE
+    if not path.is_file():
+        return None
+    tree = read_skeleton(run)
+    stored = json.loads(path.read_text())
+    fix = f"re-run `nmjax extract-skeleton --run {run}`"
+    if "keep" not in stored or "pruned_parents" not in stored:
+        raise ValueError(f"{path} lacks `keep` / `pruned_parents` (the kept nodes); {fix}")
+    keep = np.asarray(stored["keep"])
+    try:
+        pruned = skeleton_from_parents(np.asarray(stored["pruned_parents"]))
+    except ValueError as err:
+        raise ValueError(f"{path}: `pruned_parents` is not a tree ({err}); {fix}") from err
+    parents = np.asarray(pruned.parents)
+    if (
+        keep.dtype != bool
+        or keep.shape != (tree.num_keypoints,)
+        or pruned.num_keypoints != tree.num_keypoints
+        or not keep[pruned.root]
+        or not keep[parents[keep]].all()
+    ):
+        raise ValueError(
+            f"{path}: `keep` and `pruned_parents` must be {tree.num_keypoints} booleans and a "
+            f"tree over the same keypoints whose kept nodes hang off kept nodes; {fix}"
+        )
+    return parents, keep
 
 
 # --- phase 1 -> phase 2: keypoint trajectories ------------------------------------------------

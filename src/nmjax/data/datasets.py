@@ -163,6 +163,12 @@ def load_sequences(
         _check_generated(name, folder)
     if not folder.is_dir():
         raise FileNotFoundError(_missing_message(name, folder, folder, "dataset folder"))
+    if (folder / layout.PREPARING_FILE).is_file() and not (folder / "meta.json").is_file():
+        raise FileNotFoundError(
+            f"dataset {name!r}: {folder} holds an unfinished preparation "
+            f"({layout.PREPARING_FILE}, no meta.json).\n"
+            "  Finish it by running the same nmjax prepare-data command again"
+        )
     files = layout.sequence_files(folder)
     if not files:
         raise FileNotFoundError(

@@ -24,6 +24,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -181,6 +182,16 @@ def write_sequence(
         if array is not None:
             file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
             atomic.save_npy(root / split / kind / file, array)
+
+
+def clear_dataset(root: Path) -> None:
+    """Removes a previous dataset's files (only the nmjax layout, nothing else) from `root`."""
+    for split in SPLITS:
+        for sub in ("vertices", "joints"):
+            if (root / split / sub).is_dir():
+                shutil.rmtree(root / split / sub)
+    for name in ("meta.json", "split.json", PREPARING_FILE):
+        (root / name).unlink(missing_ok=True)
 
 
 def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:

@@ -128,7 +128,8 @@ def sample_mesh_sequence(
       where: the source, for error messages.
 
     Raises:
-      ValueError naming `where`: face indices outside the vertices, NaN / inf, no surface.
+      ValueError naming `where`: face indices outside the vertices, NaN / inf vertices, a frame
+      without surface.
     """
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or not np.issubdtype(faces.dtype, np.integer):
@@ -138,6 +139,9 @@ def sample_mesh_sequence(
             f"{where}: face indices {faces.min()}..{faces.max()} outside the "
             f"{vertices.shape[1]} vertices"
         )
+    bad = ~np.isfinite(vertices[: len(seeds)]).all(axis=(1, 2))
+    if bad.any():
+        raise ValueError(f"{where}: vertices contain NaN or inf (first at frame {np.argmax(bad)})")
     sampled = np.empty((len(seeds), points, 3), dtype=np.float32)
     for t, frame_seed in enumerate(seeds):
         where_t = f"{where} frame {t}"
@@ -294,6 +298,7 @@ def write_sequences(
     max_frames: int | None = None,
     published: bool = False,
     meta: dict | None = None,
+    overwrite: bool = False,
 ) -> Summary:
     """Writes `sequences` (already selected) of dataset `name` into the layout under `root`.
 
@@ -308,6 +313,8 @@ def write_sequences(
       published: split by the published lists of `name` (`choose_split`); for the downloads
         those lists are written for, not for hand-made mesh folders.
       meta: further entries for meta.json (the source format, the source's own meta.json).
+      overwrite: clear what `root` holds (`layout.clear_dataset`) once the split is chosen,
+        instead of skipping the sequences already written.
 
     Returns:
       the `Summary`.
@@ -324,6 +331,8 @@ def write_sequences(
     if short:
         raise ValueError(f"--from {source}: sequences with fewer than 2 frames: {short[:5]}")
     split, left_out, rule = choose_split(name, frames, source, published=published)
+    if overwrite:
+        layout.clear_dataset(root)
     settings = {"name": name, "points": points, "seed": seed, "source": str(source)}
     new_root = not root.exists()
     _check_settings(root, settings)

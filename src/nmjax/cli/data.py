@@ -3,6 +3,7 @@
     nmjax prepare-data --data synth-hand [--sequences N] [--frames N] [--seed S]
     nmjax prepare-data --data animals --from DT4D_ROOT/animals [--root DIR] [--points 20000]
     nmjax prepare-data --data dfaust --from DFAUST_ROOT [--subjects ID,...] [--overwrite]
+    nmjax prepare-data --data aist --from AIST_ROOT --body-model SMPL_MALE.pkl
     nmjax synthesize synth-arm [--root DIR] [--num-sequences N] [--frames N] [--points P]
 
 See `nmjax.data.prepare` for the raw forms and `nmjax.data.synthetic` for the bodies.
@@ -39,10 +40,11 @@ def _downloads_help() -> str:
 
     lines = ["real datasets as downloaded (the files, where to get them, the one command):"]
     for name, download in prepare.DOWNLOADS.items():
+        model = f" --body-model {download.model}" if download.model else ""
         lines += [
             f"  {name:<16}{download.form}",
-            f"  {'':<16}{download.where}",
-            f"  {'':<16}nmjax prepare-data --data {name} --from {download.source}",
+            *(f"  {'':<16}{part}" for part in download.where.splitlines()),
+            f"  {'':<16}nmjax prepare-data --data {name} --from {download.source}{model}",
         ]
     lines += [
         f"  {'any real set':<16}one folder of .obj/.ply/.off frames per sequence (+ joints.npy)",
@@ -88,6 +90,13 @@ def prepare_data(argv: list[str]) -> int:
         metavar="ID,...",
         help="dfaust: only these subjects (e.g. 50002,50025); default: all",
     )
+    p.add_argument(
+        "--body-model",
+        type=Path,
+        metavar="FILE",
+        help="aist: the SMPL model (.pkl as downloaded, or .npz); hanco: MANO_RIGHT.pkl. Their "
+        "owners license them to each user, so nmjax cannot ship them (where to get them: below)",
+    )
     p.add_argument("--frames", type=int, help="frames per sequence (default: all)")
     p.add_argument("--points", type=int, default=prepare.DEFAULT_POINTS, help="points per frame")
     p.add_argument(
@@ -106,6 +115,7 @@ def prepare_data(argv: list[str]) -> int:
         frames=args.frames,
         points=args.points,
         overwrite=args.overwrite,
+        body_model=args.body_model,
     )
     if message is None:
         from nmjax.data.layout import dataset_root
@@ -128,6 +138,7 @@ def prepare_dataset(
     frames: int | None = None,
     points: int | None = None,
     overwrite: bool = False,
+    body_model: Path | None = None,
 ) -> str | None:
     """Writes dataset `name` into `root` (default data/<name>): generated for a synthetic name,
     converted from the raw sequences in `source` for a real one.
@@ -160,6 +171,8 @@ def prepare_dataset(
         raise ValueError(f"{name} is generated; --from is only for real datasets")
     if synthetic_data and (subjects is not None or not (sequences is None or count)):
         raise ValueError(f"{name} is generated; --sequences NAMES and --subjects pick real data")
+    if synthetic_data and body_model is not None:
+        raise ValueError(f"{name} is generated; --body-model is read for aist and hanco")
     if not synthetic_data and source is None:
         raise ValueError(
             f"--data {name} needs --from DIR, the download (see nmjax prepare-data --help) or "
@@ -180,6 +193,7 @@ def prepare_dataset(
             max_frames=frames,
             subjects=subjects,
             overwrite=overwrite,
+            body_model=body_model,
         )
         return summary.line()
     from nmjax.data import synthetic  # lazy: only synthetic sets need the generator

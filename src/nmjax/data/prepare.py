@@ -2,11 +2,16 @@
 
     nmjax prepare-data --data animals --from DT4D_ROOT/animals [--root DIR] [--points 20000]
     nmjax prepare-data --data dfaust --from DFAUST_ROOT [--subjects 50002,50004]
+    nmjax prepare-data --data aist --from AIST_ROOT --body-model SMPL_MALE.pkl
+    nmjax prepare-data --data hanco --from HANCO_ROOT --body-model MANO_RIGHT.pkl
 
 `--from` takes a dataset as it is downloaded, where nmjax reads that form:
 
     animals, dt4d-humanoids   DeformingThings4D `<seq>/<seq>.anime` (`nmjax.data.dt4d`)
     dfaust                    `registrations_m.hdf5`, `registrations_f.hdf5` (`nmjax.data.dfaust`)
+    aist                      AIST++ `motions/<seq>.pkl` + the user's SMPL model (`nmjax.data.aist`)
+    hanco                     HanCo `meta.json`, `shape/`, `xyz/` + the user's MANO model
+                              (`nmjax.data.hanco`)
 
 or, for any real set, one folder of mesh frames per sequence: `RAW_DIR/<seq>/` holds one mesh per
 frame (.obj / .ply / .off, ordered by name with numbers compared as numbers, so frame_2 <
@@ -21,6 +26,7 @@ rerun continues it.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import re
 from collections.abc import Sequence
@@ -29,7 +35,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from nmjax.data import dfaust, dt4d
+from nmjax.data import aist, body_models, dfaust, dt4d, hanco
 from nmjax.data.streaming import (
     SourceSequence,
     Summary,
@@ -45,11 +51,14 @@ DT4D_DATASETS = ("animals", "dt4d-humanoids")
 
 
 class Download(NamedTuple):
-    """How a real set comes: the files `--from` holds, where to get them, the `--from` folder."""
+    """How a real set comes: the files `--from` holds, where to get them, the `--from` folder,
+    and the `--body-model` file it is meshed with (none for sets that come as meshes). `where`
+    may take several lines."""
 
     form: str
     where: str
     source: str
+    model: str = ""
 
 
 # The sets nmjax reads as they are downloaded (`nmjax prepare-data --help` and the README's table
@@ -69,6 +78,20 @@ DOWNLOADS: dict[str, Download] = {
         "<seq>/<seq>.anime",
         "https://github.com/rabbityl/DeformingThings4D (request form): humanoids/",
         "DT4D_ROOT/humanoids",
+    ),
+    "aist": Download(
+        "motions/<seq>.pkl, ignore_list.txt (aist_plusplus_final/)",
+        "https://google.github.io/aistplusplus_dataset/download.html (annotations)\n"
+        "SMPL: https://smpl.is.tue.mpg.de, SMPL 1.1.0 for Python (licensed per user)",
+        "AIST_ROOT",
+        "SMPL_MALE.pkl",
+    ),
+    "hanco": Download(
+        "meta.json, shape/<sid>/<fid>.json, xyz/<sid>/<fid>.json",
+        "https://lmb.informatik.uni-freiburg.de/resources/datasets/HanCo.en.html\n"
+        "MANO: https://mano.is.tue.mpg.de, MANO 1.2: MANO_RIGHT.pkl (licensed per user)",
+        "HANCO_ROOT",
+        "MANO_RIGHT.pkl",
     ),
 }
 
@@ -170,6 +193,53 @@ def list_source(
         raise
 
 
+# --- AIST++ and HanCo: the download meshed with the user's body model ---------------------------
+
+# The readers of the sets that come as body-model parameters; each module has MODEL_KIND,
+# MODEL_SOURCE, FORMAT, PUBLISHED_SPLIT, is_download, list_sequences and dataset_meta.
+BODY_MODEL_READERS = {"aist": aist, "hanco": hanco}
+
+
+class BodyModelSource(NamedTuple):
+    """AIST++ / HanCo listed: the sequences, the format's name, whether the published split
+    applies, the meta.json entries, and the summary's note on what the reader left out."""
+
+    sequences: list[SourceSequence]
+    form: str
+    published: bool
+    meta: dict
+    note: str
+
+
+def body_model_source(name: str, source: Path, body_model: Path | None) -> BodyModelSource | None:
+    """Lists AIST++ / HanCo as downloaded, meshed with the model file `body_model`; None when
+    there is no model and `source` is not such a download (mesh folders: `list_source`).
+
+    Raises:
+      ValueError: a download without --body-model (the message says where the model is obtained),
+        --body-model for another set, a model of the wrong kind, a damaged model or input file.
+    """
+    reader = BODY_MODEL_READERS.get(name)
+    if body_model is None:
+        if reader is not None and source.is_dir() and reader.is_download(source):
+            raise ValueError(
+                f"--data {name} meshes {source} with the {reader.MODEL_KIND} model, which its "
+                f"owners license to each user: pass --body-model FILE, {reader.MODEL_SOURCE}"
+            )
+        return None
+    if reader is None:
+        raise ValueError(
+            f"--body-model is read for --data {' / '.join(BODY_MODEL_READERS)} only, not {name}"
+        )
+    model = body_models.load_model(body_model)
+    body_models.require_kind(model, reader.MODEL_KIND, f"--data {name}", reader.MODEL_SOURCE)
+    listed, left_out = reader.list_sequences(source, model)
+    shown = ", ".join(left_out[:5]) + (", ..." if len(left_out) > 5 else "")
+    note = f"{len(left_out)} {reader.LEFT_OUT}" + (f": {shown}" if left_out else "")
+    meta = reader.dataset_meta(model, left_out)
+    return BodyModelSource(listed, reader.FORMAT, reader.PUBLISHED_SPLIT, meta, note)
+
+
 def prepare_real(
     name: str,
     source: Path,
@@ -181,23 +251,31 @@ def prepare_real(
     max_frames: int | None = None,
     subjects: Sequence[str] | None = None,
     overwrite: bool = False,
+    body_model: Path | None = None,
 ) -> Summary:
     """Converts the raw sequences in `source` into the prepared layout under `root`, one sequence
     at a time (`nmjax.data.streaming.write_sequences`: a rerun skips what is written).
 
     Every input is listed and checked before `root` is touched; `overwrite` then clears it
-    (`nmjax.data.layout.clear_dataset`) instead of continuing what is there.
+    (`nmjax.data.layout.clear_dataset`) instead of continuing what is there. `body_model`: the
+    SMPL / MANO file that AIST++ / HanCo are meshed with (`body_model_source`).
 
     Returns:
       the `Summary` of what was written.
     """
-    listed, form, published = list_source(name, source, subjects=subjects)
+    fitted = body_model_source(name, source, body_model)
+    if fitted is not None:
+        if subjects is not None:
+            raise ValueError(f"--subjects picks D-FAUST subjects; --data {name} takes --sequences")
+        listed, form, published, meta, note = fitted
+    else:
+        listed, form, published = list_source(name, source, subjects=subjects)
+        meta, note = {}, None
     chosen = select_sequences(listed, sequences, source)
-    meta = {}
     if form == "mesh-folders" and (source / "meta.json").is_file():
         meta = json.loads((source / "meta.json").read_text())
     meta["format"] = form
-    return write_sequences(
+    summary = write_sequences(
         name,
         root,
         chosen,
@@ -209,3 +287,4 @@ def prepare_real(
         meta=meta,
         overwrite=overwrite,
     )
+    return summary if note is None else dataclasses.replace(summary, notes=(note,))

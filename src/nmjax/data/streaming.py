@@ -67,6 +67,7 @@ class Summary:
     points: int
     seconds: float
     left_out: list[str]
+    notes: tuple[str, ...] = ()  # what the reader adds (AIST++: the ignore list, ...)
 
     def line(self) -> str:
         done = self.written + self.skipped
@@ -79,7 +80,7 @@ class Summary:
         if self.left_out:
             shown = ", ".join(self.left_out[:5]) + (", ..." if len(self.left_out) > 5 else "")
             text += f"; {len(self.left_out)} in neither published list, left out: {shown}"
-        return text
+        return "; ".join([text, *self.notes])
 
 
 # --- sampling ------------------------------------------------------------------------------------

@@ -140,10 +140,11 @@ def write_npz(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     return path
 
 
-def write_official_pkl(path: Path, arrays: dict[str, np.ndarray]) -> Path:
-    """The form of the official files: a protocol-2 pickled dict; v_template, shapedirs, posedirs
-    and weights as chumpy arrays, J_regressor as a scipy csc_matrix, a chumpy expression under
-    "J" that nothing reads, plus the strings the official files carry."""
+def write_official_pkl(path: Path, arrays: dict[str, np.ndarray], protocol: int = 2) -> Path:
+    """The form of the official files: a pickled dict (protocol 2, or Python 2's default 0);
+    v_template, shapedirs, posedirs and weights as chumpy arrays, J_regressor as a scipy
+    csc_matrix, a chumpy expression under "J" that nothing reads, plus the strings the official
+    files carry."""
     content: dict[str, object] = dict(arrays)
     with chumpy_modules():
         for key in ("v_template", "shapedirs", "posedirs", "weights"):
@@ -152,5 +153,5 @@ def write_official_pkl(path: Path, arrays: dict[str, np.ndarray]) -> Path:
         content["J"] = ChAdd(Ch(arrays["v_template"][:1]), Ch(arrays["v_template"][:1]))
         content["bs_style"], content["bs_type"] = "lbs", "lrotmin"
         with open(path, "wb") as f:
-            pickle.dump(content, f, protocol=2)
+            pickle.dump(content, f, protocol=protocol)
     return path

@@ -25,17 +25,18 @@ from nmjax.data import body_models
 QUARTER = np.pi / 2
 
 
-def chain_files(tmp_path, posedirs_scale=0.0):
+def chain_files(tmp_path, posedirs_scale=0.0, protocol=2):
     arrays = chain_model(posedirs_scale)
     return (
         arrays,
         write_npz(tmp_path / "chain.npz", arrays),
-        write_official_pkl(tmp_path / "chain.pkl", arrays),
+        write_official_pkl(tmp_path / "chain.pkl", arrays, protocol),
     )
 
 
-def test_pkl_and_npz_read_as_the_same_model(tmp_path):
-    arrays, npz, pkl = chain_files(tmp_path, posedirs_scale=0.1)
+@pytest.mark.parametrize("protocol", [0, 2])
+def test_pkl_and_npz_read_as_the_same_model(tmp_path, protocol):
+    arrays, npz, pkl = chain_files(tmp_path, posedirs_scale=0.1, protocol=protocol)
     for path in (npz, pkl):
         model = body_models.load_model(path)
         np.testing.assert_array_equal(model.v_template, arrays["v_template"])

@@ -485,12 +485,14 @@ def shape_blend(v_template: np.ndarray, shapedirs: np.ndarray, betas: np.ndarray
     count = betas.shape[-1]
     if count > shapedirs.shape[-1]:
         raise ValueError(f"{count} betas given, the model has {shapedirs.shape[-1]}")
-    return v_template + np.einsum("vcb,...b->...vc", shapedirs[..., :count], betas)
+    # As one matrix product (BLAS): (..., B') @ (B', 3V).
+    offsets = betas @ shapedirs[..., :count].reshape(-1, count).T
+    return v_template + offsets.reshape(*betas.shape[:-1], *v_template.shape)
 
 
 def regress_joints(j_regressor: np.ndarray, vertices: np.ndarray) -> np.ndarray:
     """Joints as fixed combinations of vertices: (K, V) and (..., V, 3) -> (..., K, 3)."""
-    return np.einsum("kv,...vc->...kc", j_regressor, vertices)
+    return j_regressor @ vertices
 
 
 def pose_blend(posedirs: np.ndarray, rotations: np.ndarray) -> np.ndarray:
@@ -507,7 +509,9 @@ def pose_blend(posedirs: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     """
     features = rotations[..., 1:, :, :] - np.eye(3)
     features = features.reshape(*rotations.shape[:-3], -1)
-    return np.einsum("vcp,...p->...vc", posedirs, features)
+    # As one matrix product (BLAS): (..., 9 (K - 1)) @ (9 (K - 1), 3V).
+    offsets = features @ posedirs.reshape(-1, posedirs.shape[-1]).T
+    return offsets.reshape(*features.shape[:-1], *posedirs.shape[:2])
 
 
 def chain_transforms(rotations: np.ndarray, joints: np.ndarray, parents: np.ndarray) -> np.ndarray:
@@ -558,10 +562,12 @@ def skin(
     """
     rotation = transforms[..., :3, :3]
     # G_k [I | -J_k] keeps G_k's rotation and moves its translation by -R_k J_k.
-    translation = transforms[..., :3, 3] - np.einsum("...kij,...kj->...ki", rotation, joints)
-    blended_rotation = np.einsum("vk,...kij->...vij", weights, rotation)
-    blended_translation = np.einsum("vk,...ki->...vi", weights, translation)
-    return np.einsum("...vij,...vj->...vi", blended_rotation, vertices) + blended_translation
+    translation = transforms[..., :3, 3] - (rotation @ joints[..., None])[..., 0]
+    per_joint = np.concatenate([rotation, translation[..., None]], axis=-1)  # (..., K, 3, 4)
+    # Blend the joints' [R | t] per vertex as one matrix product (BLAS): (V, K) @ (..., K, 12).
+    blended = weights @ per_joint.reshape(*per_joint.shape[:-2], 12)
+    blended = blended.reshape(*blended.shape[:-1], 3, 4)
+    return (blended[..., :3] @ vertices[..., None])[..., 0] + blended[..., 3]
 
 
 def pose_model(

@@ -55,7 +55,8 @@ def _missing_message(name: str, root: Path, missing: Path, what: str) -> str:
     else:
         how = (
             f"nmjax prepare-data --data {name} --from DIR --root {root}\n"
-            "    (DIR: the raw mesh sequences, one folder of .obj/.ply/.off frames per sequence)"
+            "    (DIR: the download as it comes, see nmjax prepare-data --help, or one folder of\n"
+            "    .obj/.ply/.off frames per sequence)"
         )
         instead = "  or train on a built-in synthetic dataset instead: DATA=synth-hand"
     return (

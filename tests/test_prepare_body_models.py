@@ -286,3 +286,17 @@ def test_mesh_folders_still_need_no_model(tmp_path):
             trimesh.creation.box().export(source / seq / f"{t}.obj")
     assert prepare(["--data", "hanco", "--from", str(source), "--root", str(root)]) == 0
     assert json.loads((root / "meta.json").read_text())["format"] == "mesh-folders"
+
+
+def test_help_names_the_body_model_downloads(capsys):
+    assert nmjax_main(["prepare-data", "--help"]) == 0
+    out = capsys.readouterr().out
+    for line in (
+        "--body-model FILE",
+        "nmjax prepare-data --data aist --from AIST_ROOT --body-model SMPL_MALE.pkl",
+        "nmjax prepare-data --data hanco --from HANCO_ROOT --body-model MANO_RIGHT.pkl",
+        "https://google.github.io/aistplusplus_dataset",
+        "https://smpl.is.tue.mpg.de",
+        "https://mano.is.tue.mpg.de",
+    ):
+        assert line in out

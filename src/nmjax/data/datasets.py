@@ -55,7 +55,8 @@ def _missing_message(name: str, root: Path, missing: Path, what: str) -> str:
     else:
         how = (
             f"nmjax prepare-data --data {name} --from DIR --root {root}\n"
-            "    (DIR: the raw mesh sequences, one folder of .obj/.ply/.off frames per sequence)"
+            "    (DIR: the download as it comes, see nmjax prepare-data --help, or one folder of\n"
+            "    .obj/.ply/.off frames per sequence)"
         )
         instead = "  or train on a built-in synthetic dataset instead: DATA=synth-hand"
     return (
@@ -163,6 +164,12 @@ def load_sequences(
         _check_generated(name, folder)
     if not folder.is_dir():
         raise FileNotFoundError(_missing_message(name, folder, folder, "dataset folder"))
+    if (folder / layout.PREPARING_FILE).is_file() and not (folder / "meta.json").is_file():
+        raise FileNotFoundError(
+            f"dataset {name!r}: {folder} holds an unfinished preparation "
+            f"({layout.PREPARING_FILE}, no meta.json).\n"
+            "  Finish it by running the same nmjax prepare-data command again"
+        )
     files = layout.sequence_files(folder)
     if not files:
         raise FileNotFoundError(

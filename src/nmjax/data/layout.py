@@ -7,6 +7,8 @@
     <root>/split.json                   optional: {"train": [seq, ...], "test": [seq, ...]}
     <root>/meta.json                    optional: joint_names, parents, sample_rate, ...;
                                         written last, so that it marks a finished set
+    <root>/preparing.json               only while `nmjax prepare-data` has not finished: the
+                                        settings a rerun must repeat to continue
 
 A set may also keep all its sequences in `<root>/vertices/` (and `<root>/joints/`) without split
 folders; `split_by_frames` then divides them 9:1. `<root>` defaults to `data/<name>` relative to
@@ -22,6 +24,7 @@ import hashlib
 import json
 import os
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -36,6 +39,9 @@ SYNTHETIC_DATASETS = tuple(name for name, spec in DATASETS.items() if spec.synth
 # How each dataset names its ground-truth joint files inside <split>/joints/.
 JOINT_FILE_PATTERNS: dict[str, str] = {name: "{seq}.npy" for name in DATASETS}
 JOINT_FILE_PATTERNS["hanco"] = "{seq}_joints.npy"
+
+# Marks a real set whose preparation has not finished (see `nmjax.data.streaming`).
+PREPARING_FILE = "preparing.json"
 
 # The sequence names `split_names` gives; a generator may delete such files it did not write.
 GENERATED_NAME = re.compile(r"seq_\d+")
@@ -176,6 +182,16 @@ def write_sequence(
         if array is not None:
             file = joint_file.format(seq=seq) if kind == "joints" else f"{seq}.npy"
             atomic.save_npy(root / split / kind / file, array)
+
+
+def clear_dataset(root: Path) -> None:
+    """Removes a previous dataset's files (only the nmjax layout, nothing else) from `root`."""
+    for split in SPLITS:
+        for sub in ("vertices", "joints"):
+            if (root / split / sub).is_dir():
+                shutil.rmtree(root / split / sub)
+    for name in ("meta.json", "split.json", PREPARING_FILE):
+        (root / name).unlink(missing_ok=True)
 
 
 def write_index(root: Path, split: dict[str, list[str]], meta: dict) -> None:

@@ -36,6 +36,7 @@ BAD_INPUTS = {
     ],
     "evaluate": [(["--run", MISSING], MISSING), (["--run", MISSING, "--rates", "x"], "--rates")],
     "bench": [(["--preset", "nope"], "nope"), (["--steps", "0"], "--steps")],
+    "view": [(["--run", MISSING], MISSING), (["--run", MISSING, "--port", "-1"], "--port")],
 }
 
 

@@ -165,11 +165,21 @@ def _decode(graphdef, state, keypoints, first_voxels):
     return model.decode(keypoints, features, first_voxels)
 
 
+def sequence_points(seq, sample_rate: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Points (S, N, 3) and ground-truth joints (S, J, 3) (None without) of every
+    `sample_rate`-th frame, normalised with one bounding box over the whole sequence: the frames
+    `export_keypoints` detects on, in the keypoints' coordinates."""
+    from nmjax.data.voxelize import normalize_sequence
+
+    joints = None if seq.joints is None else np.asarray(seq.joints[::sample_rate], np.float32)
+    return normalize_sequence(np.asarray(seq.vertices[::sample_rate], np.float32), joints)
+
+
 def sequence_voxels(seq, sample_rate: int, grid: int) -> np.ndarray:
     """(S, G, G, G): every `sample_rate`-th frame, one bounding box over the whole sequence."""
-    from nmjax.data.voxelize import normalize_sequence, voxelize
+    from nmjax.data.voxelize import voxelize
 
-    points, _ = normalize_sequence(np.asarray(seq.vertices[::sample_rate], np.float32))
+    points, _ = sequence_points(seq, sample_rate)
     return voxelize(points, grid)
 
 

@@ -608,6 +608,10 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     atomic.write_text(path, "\n".join(lines) + "\n")
 
 
+RETARGET_FILE = "retarget.npz"  # the keypoints and joints of a `run_retarget` output folder
+RETARGET_FRAME = "frame_{:04d}.obj"  # its posed target meshes, one per frame
+
+
 def run_retarget(
     run: str | Path,
     target: str | Path,
@@ -673,11 +677,11 @@ def run_retarget(
     moved_mesh = (np.asarray(moved, np.float64) + 1.0) / scale + bmin  # back to mesh units
     faces = np.asarray(mesh.faces)
     for t, verts in enumerate(moved_mesh):
-        write_obj(out / f"frame_{t:04d}.obj", verts, faces)
+        write_obj(out / RETARGET_FRAME.format(t), verts, faces)
     joints_mesh = (np.asarray(joints) + 1.0) / scale + bmin
     src_mu = np.asarray(x_src[0])
     atomic.save_npz(
-        out / "retarget.npz",
+        out / RETARGET_FILE,
         source_keypoints=src_mu,
         target_keypoints=target_kp,
         joints=joints_mesh.astype(np.float32),
@@ -695,4 +699,55 @@ def run_retarget(
         parents,
         clouds=[None, tri_centres],
     )
+    return out
+
+
+def read_retarget(folder: str | Path) -> dict[str, Any]:
+    """A `run_retarget` output folder read back (the one reader of that format).
+
+    Returns:
+      {"vertices": (T, V, 3) float32 posed target meshes in the mesh's units, "faces": (F, 3),
+      "joints": (T, K, 3) retargeted joints in the mesh's units, "parents": (K,),
+      "source_keypoints": (T, K, 4) the source motion in its normalised frame, "source": name}.
+
+    Raises:
+      FileNotFoundError: no such folder, or one without retarget.npz or frame meshes (names the
+        command that writes them).
+      ValueError: frames that disagree with each other or with retarget.npz.
+    """
+    import trimesh
+
+    folder = Path(folder)
+    fix = "write it with `nmjax retarget --run RUN --target MESH --out DIR`"
+    if not folder.is_dir():
+        raise FileNotFoundError(f"retarget output folder {folder} does not exist; {fix}")
+    frames = sorted(folder.glob(RETARGET_FRAME.replace("{:04d}", "[0-9]*")))
+    if not (folder / RETARGET_FILE).is_file() or not frames:
+        raise FileNotFoundError(
+            f"{folder} lacks {RETARGET_FILE} or its {RETARGET_FRAME.format(0)}... meshes; is it "
+            f"an unfinished retarget output? {fix}"
+        )
+    with np.load(folder / RETARGET_FILE) as z:
+        missing = [k for k in ("joints", "parents", "source_keypoints", "source") if k not in z]
+        if missing:
+            raise ValueError(f"{folder / RETARGET_FILE} lacks {missing}; {fix}")
+        out = {
+            "joints": np.asarray(z["joints"], np.float32),
+            "parents": np.asarray(z["parents"]),
+            "source_keypoints": np.asarray(z["source_keypoints"], np.float32),
+            "source": str(z["source"]),
+        }
+    meshes = [trimesh.load(path, force="mesh", process=False) for path in frames]
+    faces = np.asarray(meshes[0].faces)
+    if any(
+        m.vertices.shape != meshes[0].vertices.shape or len(m.faces) != len(faces) for m in meshes
+    ):
+        raise ValueError(f"{folder}: the frame meshes differ in vertices or faces; {fix}")
+    if len(meshes) != len(out["joints"]):
+        raise ValueError(
+            f"{folder}: {len(meshes)} frame meshes but {len(out['joints'])} frames of joints in "
+            f"{RETARGET_FILE}; {fix}"
+        )
+    out["vertices"] = np.stack([np.asarray(m.vertices, np.float32) for m in meshes])
+    out["faces"] = faces
     return out

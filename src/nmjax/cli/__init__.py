@@ -44,6 +44,7 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "bench",
         "steps/s, load vs compute, compile time, memory of the train steps",
     ),
+    "view": ("view", "view", "look at a run in 3D in the browser (viser), frame by frame"),
 }
 
 

@@ -21,7 +21,9 @@ bytes) and the device's `memory_stats()["peak_bytes_in_use"]` where it reports o
 process's peak resident set size (`resource.getrusage`). Both only grow within a process, so with
 several rows each row is measured in a fresh process (`--same-process` to opt out).
 
-The optimisations in the model, each timed against its plain formulation, are
+The convolution forms are compared through the configuration (`--set skel:model.conv_form=native`
+against the default "auto"; the row records the field); the optimisations in the kernels
+(`nmjax.models.conv_kernels`), each timed against its plain formulation, are
 experiments/bench_optimisations.py's.
 """
 
@@ -175,6 +177,7 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
         "C": m.channels,
         "K": m.num_keypoints,
         "compute_dtype": m.compute_dtype,
+        "conv_form": m.conv_form,
     }
     note = (
         f"grain pipeline (prefetch={cfg.data.prefetch}, workers={cfg.data.worker_count}); "

@@ -28,7 +28,7 @@ from scipy.sparse import csgraph
 from nmjax import atomic
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
-from nmjax.runs import Detector
+from nmjax.runs import AFFINITY_FILE, STATS_FILE, Detector
 from nmjax.skeleton import METHODS, extract_skeleton, prune
 
 RESULTS = Path(__file__).parent / "results"
@@ -73,8 +73,8 @@ def median_ms(affinity: np.ndarray, method: str, repeats: int = 200) -> float:
 
 
 def evaluate_run(run: Path, max_crops: int) -> dict:
-    affinity = np.load(run / "affinity.npy")
-    with np.load(run / "keypoint_stats.npz") as stats:
+    affinity = np.load(run / AFFINITY_FILE)
+    with np.load(run / STATS_FILE) as stats:
         intensities = np.asarray(stats["intensities"])
     detector = Detector.load(run)
     meta = read_meta(detector.cfg.data.name, detector.cfg.data.root)

@@ -13,7 +13,6 @@ Writes experiments/results/ltraj_ablation.md and ltraj_ablation.png.
 from __future__ import annotations
 
 import argparse
-import json
 
 import exp_common as ec
 import numpy as np
@@ -21,19 +20,17 @@ import numpy as np
 from nmjax import atomic
 from nmjax.data.voxelize import voxel_points
 from nmjax.evaluate import evaluate_phase1
-from nmjax.runs import Detector
+from nmjax.runs import STATS_FILE, Detector, pruned_skeleton
 
 
 def draw(ax, run, title: str) -> None:
-    skeleton = json.loads((run / "skeleton.json").read_text())
-    with np.load(run / "keypoint_stats.npz") as z:
+    parents, keep = pruned_skeleton(run)
+    with np.load(run / STATS_FILE) as z:
         voxels, kp = z["example_voxels"], z["example_keypoints"]
     pts = voxel_points(voxels)
     if len(pts) > 3000:
         pts = pts[np.random.default_rng(0).choice(len(pts), 3000, replace=False)]
     ax.scatter(*pts.T, s=0.5, c="0.7", alpha=0.3, depthshade=False)
-    keep = np.asarray(skeleton.get("keep", [True] * len(kp)))
-    parents = skeleton.get("pruned_parents", skeleton["parents"])
     for k, p in enumerate(parents):
         if p != k and keep[k]:
             ax.plot(*zip(kp[p, :3], kp[k, :3], strict=True), "-", c="tab:blue", lw=2)
@@ -66,11 +63,10 @@ def main() -> None:
             results = evaluate_phase1(Detector.load(run), args.max_crops)
             evaluated[f"{data} {label}"] = results
             sc = results.get("sc", {})
-            skeleton = json.loads((run / "skeleton.json").read_text())
-            kept = int(np.sum(skeleton.get("keep", [])))
+            parents, keep = pruned_skeleton(run)
             rows.append(
-                f"| {data} | {label} | {sc.get('score', float('nan')):.3f} | {kept} | "
-                f"`{skeleton.get('pruned_parents', skeleton['parents'])}` |"
+                f"| {data} | {label} | {sc.get('score', float('nan')):.3f} | {int(keep.sum())} | "
+                f"`{parents.tolist()}` |"
             )
             ax = fig.add_subplot(len(args.data), 2, 2 * i + j + 1, projection="3d")
             draw(ax, run, f"{data}: {label}")

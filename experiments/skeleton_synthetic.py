@@ -24,7 +24,7 @@ import numpy as np
 from nmjax import atomic
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import normalize_sequence, voxelize
-from nmjax.runs import extract_run_skeleton
+from nmjax.runs import AFFINITY_FILE, FIGURES_DIR, STATS_FILE, extract_run_skeleton
 from nmjax.skeleton import extract_skeleton
 
 
@@ -53,10 +53,10 @@ def main() -> None:
         affinity = motion_affinity(joints)[None]
         num = joints.shape[1]
         run = Path(tmp) / f"skel-{args.data}-demo"
-        atomic.save_npy(run / "affinity.npy", affinity.astype(np.float32))
+        atomic.save_npy(run / AFFINITY_FILE, affinity.astype(np.float32))
         keypoints = np.concatenate([joints[0], np.ones((num, 1))], axis=1).astype(np.float32)
         atomic.save_npz(
-            run / "keypoint_stats.npz",
+            run / STATS_FILE,
             intensities=np.ones(num, np.float32),
             rest_positions=joints.mean(axis=0).astype(np.float32),
             example_voxels=voxelize(points[0], args.grid),
@@ -77,7 +77,7 @@ def main() -> None:
         )
         out = Path(args.out) / f"skeleton_{args.data}.png"
         out.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(run / "figures" / "skeleton.png", out)
+        shutil.copyfile(run / FIGURES_DIR / "skeleton.png", out)
         print(f"figure: {out}")
 
 

@@ -158,8 +158,9 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
 def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
     runs, tmp_path, capsys
 ):
-    """`nmjax evaluate --run SKEL_RUN`: the skeleton measures in results.json and tables.md, on
-    the nodes skeleton.json keeps (not a new pruning of its intensities)."""
+    """`nmjax evaluate --run SKEL_RUN`: the skeleton measures and the bone-length variation in
+    results.json and tables.md, on the nodes and tree skeleton.json keeps (not a new pruning of
+    its intensities)."""
     import shutil
 
     from nmjax import cli
@@ -174,7 +175,7 @@ def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
     out = tmp_path / "eval"
     assert cli.main(["evaluate", "--run", str(run), "--max-crops", "1", "--out", str(out)]) == 0
     p1 = json.loads((out / "results.json").read_text())["phase1"]
-    assert p1["skeleton_kept_nodes"] == 3 and p1["bone_length_variation"]["kept_nodes"] == K
+    assert p1["skeleton_kept_nodes"] == 3 and p1["bone_length_variation"]["kept_nodes"] == 3
     assert 1 <= p1["distinct_nodes"] <= 3
     for key in SKELETON_KEYS[1:-1]:
         assert 0.0 <= p1[key] <= 1.0, key
@@ -186,6 +187,12 @@ def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
     expected = float(metrics.joint_distance(keypoints, joints, np.array(stored["keep"])))
     assert p1["joint_distance"]["per_sequence"] == {name: pytest.approx(expected, rel=1e-6)}
     assert p1["joint_distance"]["mean"] == pytest.approx(expected, rel=1e-6)
+    # The bones between the stored kept nodes of the stored pruned tree: 1 - 0 and 2 - 1 only.
+    parents, keep = np.array(stored["pruned_parents"]), np.array(stored["keep"])
+    bones = float(metrics.bone_length_variation(keypoints, parents, kept=keep))
+    chain = float(metrics.bone_length_variation(keypoints[..., :3, :], np.array([0, 0, 1]), 0.0))
+    assert p1["bone_length_variation"]["mean"] == pytest.approx(bones, rel=1e-6)
+    assert bones == pytest.approx(chain, rel=1e-6)
     tables = (out / "tables.md").read_text()
     assert "## Skeleton against the ground truth" in tables and " / 3 |" in tables
     # A skeleton.json without the kept nodes is refused with the command that rewrites it.

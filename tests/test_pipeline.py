@@ -43,7 +43,7 @@ def same(a: dict, b: dict) -> bool:
 
 
 def test_shapes_and_values(data):
-    batch = next(pipeline.skel_batches(data))
+    batch = next(pipeline.skel_iterator(data))
     assert batch["voxels"].shape == (2, 4, GRID, GRID, GRID)
     assert batch["voxels"].dtype == np.float32
     assert set(np.unique(batch["voxels"])) <= {0.0, 1.0}
@@ -81,9 +81,9 @@ def test_crops_match_an_independent_computation(tmp_path):
 
 
 def test_deterministic_for_a_seed(data):
-    first = pipeline.skel_batches(data, seed=3)
-    second = pipeline.skel_batches(data, seed=3)
-    other = pipeline.skel_batches(data, seed=4)
+    first = pipeline.skel_iterator(data, seed=3)
+    second = pipeline.skel_iterator(data, seed=3)
+    other = pipeline.skel_iterator(data, seed=4)
     a = [next(first) for _ in range(4)]
     b = [next(second) for _ in range(4)]
     c = [next(other) for _ in range(4)]
@@ -129,7 +129,7 @@ def test_eval_batches_fixed(data):
 def test_no_joints_key_without_joints(tmp_path):
     root = make_dataset(tmp_path / "animals", {"train": {"a": 9}}, joints=False)
     cfg = DataConfig(name="animals", root=str(root), grid=GRID, frames=3, batch_size=2)
-    batch = next(pipeline.skel_batches(cfg))
+    batch = next(pipeline.skel_iterator(cfg))
     assert set(batch) == {"voxels"} and batch["voxels"].shape == (2, 3, GRID, GRID, GRID)
 
 
@@ -196,7 +196,7 @@ def test_augment_crop_draws_cover_the_ranges():
 
 def test_augmentation_only_for_training_crops(data):
     aug = DataConfig(**{**data.__dict__, "rotate_degrees": 180.0, "scale_jitter": 0.5})
-    train_plain, train_aug = next(pipeline.skel_batches(data)), next(pipeline.skel_batches(aug))
+    train_plain, train_aug = next(pipeline.skel_iterator(data)), next(pipeline.skel_iterator(aug))
     assert not np.array_equal(train_plain["voxels"], train_aug["voxels"])
     # The draws come after the crop's start: the same sequences and frames, turned.
     assert train_aug["joints"].shape == train_plain["joints"].shape
@@ -206,7 +206,7 @@ def test_augmentation_only_for_training_crops(data):
     )
     assert all(same(a, b) for a, b in zip(plain_eval, aug_eval, strict=True))
     # Deterministic for the seed, like the plain stream.
-    assert same(next(pipeline.skel_batches(aug)), train_aug)
+    assert same(next(pipeline.skel_iterator(aug)), train_aug)
 
 
 @pytest.mark.parametrize(
@@ -215,4 +215,4 @@ def test_augmentation_only_for_training_crops(data):
 def test_bad_augmentation_is_named(data, field, value):
     bad = DataConfig(**{**data.__dict__, field: value})
     with pytest.raises(ValueError, match=f"data.{field}"):
-        next(pipeline.skel_batches(bad))
+        next(pipeline.skel_iterator(bad))

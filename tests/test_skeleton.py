@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from nmjax import atomic, cli, losses
 from nmjax import keypoints as kp_lib
-from nmjax.runs import extract_run_skeleton
+from nmjax.runs import extract_run_skeleton, pruned_skeleton
 from nmjax.skeleton import (
     Skeleton,
     algorithm1_parents,
@@ -501,6 +501,28 @@ def test_cli_writes_skeleton_json_and_figure(tmp_path, capsys):
     assert load_skeleton(run / "skeleton.json").parents == tuple(data["parents"])
     png = (run / "figures" / "skeleton.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 5000
+
+
+def test_pruned_skeleton_is_what_extract_skeleton_stored_at_its_threshold(tmp_path):
+    """`runs.pruned_skeleton` (what evaluate, view and the generation measures read) returns the
+    kept nodes and pruned tree skeleton.json stores, here extracted with a non-default
+    `--prune-threshold`, not a new pruning of the stored intensities at the default 0.2."""
+    run = tmp_path / "skel-synth-hand-0"
+    run.mkdir()
+    alpha = fake_run(run, HAND, np.random.default_rng(0))[:, 3]
+    assert pruned_skeleton(run) is None  # not extracted yet
+    threshold = 0.6
+    argv = ["extract-skeleton", "--run", str(run), "--prune-threshold", str(threshold)]
+    assert cli.main(argv) == 0
+    stored = json.loads((run / "skeleton.json").read_text())
+    tree = load_skeleton(run / "skeleton.json")
+    parents, keep = pruned_skeleton(run)
+    expected = (alpha >= threshold) | (np.arange(len(HAND)) == tree.root)
+    assert keep.tolist() == stored["keep"] == expected.tolist()
+    assert parents.tolist() == stored["pruned_parents"]
+    assert parents.tolist() == list(prune(tree, alpha, threshold)[0].parents)
+    assert keep.sum() < prune(tree, alpha)[1].sum()  # the default would keep more nodes
+    assert stored["prune_threshold"] == threshold
 
 
 def test_extract_run_skeleton_names_missing_files(tmp_path):

@@ -120,6 +120,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert affinity.shape == (n, k, k) and affinity.dtype == np.float32
     np.testing.assert_allclose(affinity.sum(-1), 1.0, atol=1e-5)
     stats = np.load(run / "keypoint_stats.npz")
+    assert sorted(stats.files) == sorted(common.STATS_KEYS)  # what nmjax.runs reads
     assert stats["intensities"].shape == (k,)
     assert stats["rest_positions"].shape == (k, 3)
     assert stats["example_voxels"].shape == (g, g, g)

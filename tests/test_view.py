@@ -118,13 +118,18 @@ def tiny(tmp_path_factory):
     """The suite's tiny runs, their phase-1 run given the files training writes at its end
     (affinity.npy, keypoint_stats.npz, the train split's keypoints: two sequences to choose
     from) and intensities that prune nodes 2 and 4."""
-    from nmjax.skeleton import skeleton_from_parents
+    from nmjax.skeleton import prune, skeleton_from_parents
 
     folders = make_runs(tmp_path_factory.mktemp("tiny-view"))
     skel = folders["skel"]
     runs.export_keypoints(skel, "train")
-    skeleton_from_parents(np.array(PARENTS)).save(
-        skel / runs.SKELETON_FILE, intensities=INTENSITIES
+    tree = skeleton_from_parents(np.array(PARENTS))
+    pruned, keep = prune(tree, INTENSITIES)  # as `extract_run_skeleton` stores them
+    tree.save(
+        skel / runs.SKELETON_FILE,
+        intensities=INTENSITIES,
+        pruned_parents=list(pruned.parents),
+        keep=keep.tolist(),
     )
     affinity = np.random.default_rng(1).random((2, K, K)).astype(np.float32)
     affinity[:, np.arange(K), np.arange(K)] = 0.0

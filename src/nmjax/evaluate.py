@@ -170,7 +170,7 @@ def skeleton_against_truth(
     Args:
       keypoints: per sequence, (C, T, K, 4) keypoints of its crops.
       joints: per sequence, (C, T, J, 3) ground-truth joints of the same crops.
-      skeleton: (pruned parents (K,), kept nodes (K,) bool), `runs.kept_skeleton`.
+      skeleton: (pruned parents (K,), kept nodes (K,) bool), `runs.pruned_skeleton`.
       true_parents: (J,) the true tree, or None (edge precision and bone recall left out).
       names: the sequence names.
 
@@ -198,12 +198,12 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
 
     SC is reported in both definitions (`metrics.SC_NODES`): "sc" is the published one
     (per-frame candidates with alpha >= 0.2), "sc_fixed_nodes" the fixed node set of the pruned
-    skeleton. The bone-length variation (`metrics.bone_length_variation`) is measured on the
-    pruned tree of the run's `skeleton.json` over the same crops (each crop one sequence of T
-    frames); it is absent when the run has no skeleton yet. The skeleton measures
-    (`skeleton_against_truth`) take the kept nodes and pruned tree stored in skeleton.json
-    (`runs.kept_skeleton`) and the true tree of the dataset's meta.json (`true_tree`); they are
-    absent without ground-truth joints or a skeleton.
+    skeleton. The bone-length variation (`metrics.bone_length_variation`) and the skeleton
+    measures (`skeleton_against_truth`) take the pruned tree and kept nodes stored in the run's
+    skeleton.json (`runs.pruned_skeleton`): the bones between kept nodes over the same crops
+    (each crop one sequence of T frames), absent when the run has no skeleton yet; the skeleton
+    against the true tree of the dataset's meta.json (`true_tree`), absent without ground-truth
+    joints or a skeleton.
 
     Returns:
       {"sc": {"score", "std_over_joints", "per_sequence"}, "sc_fixed_nodes": {same} (both absent
@@ -216,7 +216,6 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
     truth: dict[str, list] = {"names": [], "keypoints": [], "joints": []}
     skeleton = runs.pruned_skeleton(detector.run)
-    kept_skeleton = runs.kept_skeleton(detector.run)
     for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
         per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
@@ -230,7 +229,10 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
             for key, value in (("names", name), ("keypoints", keypoints), ("joints", joints)):
                 truth[key].append(value)
         if skeleton is not None:
-            per_seq_bones[name] = float(metrics.bone_length_variation(keypoints, skeleton[0]))
+            parents, kept = skeleton
+            per_seq_bones[name] = float(
+                metrics.bone_length_variation(keypoints, parents, kept=kept)
+            )
             all_keypoints.append(keypoints)
     out: dict[str, Any] = {
         "tracking": {**summarize(list(per_seq_cd.values())), "per_sequence": per_seq_cd}
@@ -245,15 +247,17 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     if skeleton is not None and all_keypoints:
         parents, kept = skeleton
         out["bone_length_variation"] = {
-            "mean": float(metrics.bone_length_variation(np.concatenate(all_keypoints), parents)),
+            "mean": float(
+                metrics.bone_length_variation(np.concatenate(all_keypoints), parents, kept=kept)
+            ),
             "kept_nodes": int(kept.sum()),
             "per_sequence": per_seq_bones,
         }
-    if kept_skeleton is not None and truth["names"]:
+    if skeleton is not None and truth["names"]:
         true_parents = true_tree(detector, truth["joints"][0].shape[-2])
         out.update(
             skeleton_against_truth(
-                truth["keypoints"], truth["joints"], kept_skeleton, true_parents, truth["names"]
+                truth["keypoints"], truth["joints"], skeleton, true_parents, truth["names"]
             )
         )
     return out

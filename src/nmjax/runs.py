@@ -5,7 +5,8 @@ A phase-1 run (`nmjax train-skel`) holds config.json, checkpoints/, metrics.json
 and keypoint_stats.npz (written by the trainer), skeleton.json (`extract_run_skeleton`) and
 keypoints_{train,test}.npz (`export_keypoints`; one (S, K, 4) array per sequence). A phase-2 run
 (`nmjax train-dyn`) holds config.json, whose `skel_run` names the phase-1 run it was trained on,
-checkpoints/ and metrics.jsonl.
+checkpoints/ and metrics.jsonl. The file names are `nmjax.train.common`'s, which the trainers
+write by.
 
 Nothing here runs a model or writes a file as a side effect of reading: a missing export is an
 error naming the command that makes it.
@@ -40,18 +41,17 @@ from nmjax.skeleton import (
     skeleton_from_parents,
 )
 from nmjax.train import common, dyn, parallel, skel
+from nmjax.train.common import (
+    AFFINITY_FILE,
+    FIGURES_DIR,
+    SKELETON_FILE,
+    STATS_FILE,
+    STATS_KEYS,
+    keypoints_file,
+)
 
 RUNS_ROOT = Path("runs")
-SKELETON_FILE = "skeleton.json"
-AFFINITY_FILE = "affinity.npy"
-STATS_FILE = "keypoint_stats.npz"
-STATS_KEYS = ("intensities", "rest_positions", "example_voxels", "example_keypoints")
 SPLITS = ("train", "test")
-
-
-def keypoints_file(run: str | Path, split: str) -> Path:
-    """`<run>/keypoints_<split>.npz`: the frozen detector's keypoints of every sequence."""
-    return Path(run) / f"keypoints_{split}.npz"
 
 
 def run_kind(run: str | Path) -> str:
@@ -329,7 +329,7 @@ def extract_run_skeleton(
         keep=keep.tolist(),
     )
     viz.draw_skeleton(
-        run / "figures" / "skeleton.png",
+        run / FIGURES_DIR / "skeleton.png",
         skeleton,
         stats["example_keypoints"],
         stats["example_voxels"],
@@ -368,24 +368,12 @@ def skeleton_intensities(run: str | Path) -> np.ndarray | None:
 
 
 def pruned_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(parents of the pruned tree, kept-node mask) of a phase-1 run's `skeleton.json`, or None
-    when the run has none (`skeleton.prune` with the intensities stored beside the tree)."""
-    if not (Path(run) / SKELETON_FILE).is_file():
-        return None
-    skeleton = read_skeleton(run)
-    intensities = skeleton_intensities(run)
-    if intensities is None:
-        return np.asarray(skeleton.parents), np.ones(skeleton.num_keypoints, bool)
-    pruned, keep = prune(skeleton, intensities)
-    return np.asarray(pruned.parents), keep
-
-
-def kept_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(pruned parents, kept-node mask) exactly as `extract_run_skeleton` stored them in the
-    run's skeleton.json (`pruned_parents`, `keep`), or None when the run has no skeleton.json.
+    """(pruned parents (K,), kept-node mask (K,) bool) exactly as `extract_run_skeleton` stored
+    them in the run's skeleton.json (`pruned_parents`, `keep`), or None when the run has no
+    skeleton.json.
 
     Nothing is pruned again: these are the nodes the run's skeleton keeps, whatever threshold
-    it was extracted with.
+    it was extracted with (`nmjax extract-skeleton --prune-threshold`).
 
     Raises:
       ValueError: the file lacks the two fields, or they do not describe a tree over the kept

@@ -22,7 +22,6 @@ step the hosts' batches together are exactly the crops of the single-host batch.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator
 
 import grain
 import jax
@@ -45,7 +44,6 @@ __all__ = [
     "augment_crop",
     "crop_sequence",
     "eval_batches",
-    "skel_batches",
     "skel_iterator",
 ]
 
@@ -240,13 +238,6 @@ def skel_iterator(
         augment=split == "train",
     )
     return iter(ds)
-
-
-def skel_batches(
-    cfg: DataConfig, split: str = "train", seed: int | None = None
-) -> Iterator[dict[str, np.ndarray]]:
-    """Infinite iterator of phase-1 batches (see `skel_iterator`), deterministic for the seed."""
-    return skel_iterator(cfg, split, seed)
 
 
 def eval_batches(

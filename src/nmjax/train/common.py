@@ -3,8 +3,12 @@ metric logging, resume rules.
 
 A training state is the pytree `nnx.state((model, optimizer))` of a model and its
 `nnx.Optimizer`, split once with `nnx.split`; each phase jits one module-level step over that
-pytree (graphdef and settings static, state donated), and `train_loop` drives it, hands the state
-to `Checkpointer` unchanged and logs what the step returns.
+pytree (graphdef and settings static, state donated), and `train_loop` drives it: it opens the
+run's checkpoints and metric log, restores a resumed run, hands the state to `Checkpointer`
+unchanged and logs what the step returns.
+
+The names of every file of a run folder are here, beside the trainers that write them;
+`nmjax.runs` reads them by the same names (contract C10).
 """
 
 from __future__ import annotations
@@ -33,9 +37,27 @@ from orbax.checkpoint import checkpoint_managers as ocp_policies
 from nmjax import atomic
 from nmjax.config import OPTIMIZER_RESETS
 
+# --- the run folder (contract C10) --------------------------------------------------------------
+
+# Both phases: written when the run starts and as it trains.
 CONFIG_FILE = "config.json"
 METRICS_FILE = "metrics.jsonl"
+TENSORBOARD_DIR = "tb"
 CHECKPOINTS = "checkpoints"
+FIGURES_DIR = "figures"
+# Phase 1: the inputs of skeleton extraction, written when training ends (`train.skel`) ...
+AFFINITY_FILE = "affinity.npy"
+STATS_FILE = "keypoint_stats.npz"
+STATS_KEYS = ("intensities", "rest_positions", "example_voxels", "example_keypoints")
+# ... and what `nmjax.runs` adds after it: the skeleton and each split's keypoints.
+SKELETON_FILE = "skeleton.json"
+
+
+def keypoints_file(run: str | Path, split: str) -> Path:
+    """`<run>/keypoints_<split>.npz`: the frozen detector's keypoints of every sequence."""
+    return Path(run) / f"keypoints_{split}.npz"
+
+
 # Fields a resumed run may change: how long it trains and what it reports, not what it computes.
 RESUMABLE_FIELDS = frozenset(
     {"steps", "log_every", "val_every", "ckpt_every", "time_limit_minutes", "run", "data.root"}
@@ -535,9 +557,6 @@ class Checkpointer:
             )
         return step, restored["state"]
 
-    def wait(self) -> None:
-        self._manager.wait_until_finished()
-
     def close(self) -> None:
         self._manager.wait_until_finished()
         self._manager.close()
@@ -604,7 +623,7 @@ class MetricWriter:
                 if resume_step is None or record.get("step", 0) <= resume_step:
                     self._lines.append(line)
         purge = None if resume_step is None else resume_step + 1
-        self._tb = SummaryWriter(str(Path(run_dir) / "tb"), purge_step=purge)
+        self._tb = SummaryWriter(str(Path(run_dir) / TENSORBOARD_DIR), purge_step=purge)
 
     def write_scalars(self, step: int, scalars: Mapping[str, Any]) -> None:
         """Logs `scalars` (name -> number or 0-d array) at `step`."""
@@ -617,6 +636,23 @@ class MetricWriter:
 
     def close(self) -> None:
         self._tb.close()
+
+
+class NullWriter:
+    """The metric writer of the non-primary hosts: writes nothing."""
+
+    def write_scalars(self, step: int, scalars: Mapping[str, Any]) -> None:
+        del step, scalars
+
+    def close(self) -> None:
+        pass
+
+
+def metric_writer(run_dir: str | Path, resume_step: int | None = None) -> Any:
+    """`MetricWriter` on process 0 (the one that writes logs), a `NullWriter` on the others."""
+    if jax.process_index() == 0:
+        return MetricWriter(run_dir, resume_step=resume_step)
+    return NullWriter()
 
 
 def read_metrics(run_dir: str | Path) -> list[dict[str, float]]:
@@ -651,7 +687,94 @@ class Cadence:
         )
 
 
+class LoopEnd(NamedTuple):
+    """Where `train_loop` stopped."""
+
+    start: int  # steps taken before this invocation (a resumed run's checkpoint step)
+    step: int  # steps taken when the loop stopped
+    state: Any  # the training state then
+    validation: dict[str, float]  # the last validation scalars
+
+
 def train_loop(
+    state: Any,
+    run: str | Path,
+    *,
+    resume: bool,
+    cadence: Cadence,
+    train_step: Callable[[Any, int], tuple[Any, Mapping[str, jax.Array]]],
+    validate: Callable[[int, Any], dict[str, float]],
+    keep_checkpoints: int,
+    best_metric: str | None = None,
+    data_iter: grain.DatasetIterator | None = None,
+    progress: bool = True,
+    desc: str | None = None,
+    step_hook: Callable[[int, Any], Any] | None = None,
+) -> LoopEnd:
+    """The one training loop of both phases: resume, step, log, validate, checkpoint, stop on NaN.
+
+    It opens the run's checkpoints (`<run>/checkpoints`) and metric log (`metric_writer`), and
+    closes both however it ends. With `resume` it first restores the latest checkpoint into the
+    structure and placement of `state` (and the position of `data_iter`), and drops the metrics
+    logged after that step, so the log reads like one of an uninterrupted run.
+
+    The step's metrics stay on the device; the loop fetches them (one transfer for all the losses
+    since the last fetch) only when it logs, validates or checkpoints, so it never waits for a
+    step it does not report. A non-finite loss is found at that point, before a checkpoint of
+    the broken state could be written.
+
+    Args:
+      state: the training state (donated to `train_step`); with `resume` only its structure.
+      run: the run folder (made by `prepare_run_dir`).
+      resume: continue from the run's latest checkpoint.
+      cadence: total steps and the log / validation / checkpoint intervals.
+      train_step: `(state, step) -> (state, metrics)`, `step` the steps taken before it; the
+        metrics hold "loss".
+      validate: `(step, state) -> scalars` (named "val/..."), called every `val_every` steps.
+      keep_checkpoints: how many of the latest checkpoints are kept.
+      best_metric: a validation scalar; the checkpoint where it was lowest is kept too (saved
+        with the validation scalars). None: no best checkpoint.
+      data_iter: the grain iterator saved with each checkpoint (exact resume), if any.
+      progress, desc: the tqdm bar.
+      step_hook: test hook `(step, state) -> state` applied before each step.
+
+    Returns:
+      `LoopEnd`: the resumed step, the steps taken, the final state, the last validation.
+
+    Raises:
+      FileNotFoundError, ValueError: `resume` without a checkpoint that fits `state`
+        (`Checkpointer.restore`).
+      NonFiniteLossError: the loss became NaN/inf; the message gives the first such step, and the
+        last good checkpoint stays on disk.
+    """
+    checkpointer = Checkpointer(Path(run) / CHECKPOINTS, keep_checkpoints, best_metric)
+    try:
+        start = 0
+        if resume:
+            start, state = checkpointer.restore(abstract_state(state), data_iter=data_iter)
+        writer = metric_writer(run, resume_step=start if resume else None)
+        try:
+            step, state, last_val = _run_steps(
+                state,
+                start,
+                cadence=cadence,
+                train_step=train_step,
+                validate=validate,
+                checkpointer=checkpointer,
+                writer=writer,
+                data_iter=data_iter,
+                progress=progress,
+                desc=desc,
+                step_hook=step_hook,
+            )
+        finally:
+            writer.close()
+    finally:
+        checkpointer.close()
+    return LoopEnd(start, step, state, last_val)
+
+
+def _run_steps(
     state: Any,
     start: int,
     *,
@@ -660,39 +783,13 @@ def train_loop(
     validate: Callable[[int, Any], dict[str, float]],
     checkpointer: Checkpointer,
     writer: Any,
-    data_iter: grain.DatasetIterator | None = None,
-    progress: bool = True,
-    desc: str | None = None,
-    step_hook: Callable[[int, Any], Any] | None = None,
+    data_iter: grain.DatasetIterator | None,
+    progress: bool,
+    desc: str | None,
+    step_hook: Callable[[int, Any], Any] | None,
 ) -> tuple[int, Any, dict[str, float]]:
-    """The one training loop of both phases: step, log, validate, checkpoint, stop on NaN.
-
-    The step's metrics stay on the device; the loop fetches them (one transfer for all the losses
-    since the last fetch) only when it logs, validates or checkpoints, so it never waits for a
-    step it does not report. A non-finite loss is found at that point, before a checkpoint of
-    the broken state could be written.
-
-    Args:
-      state: the training state (donated to `train_step`).
-      start: steps already taken (a resumed run's checkpoint step).
-      cadence: total steps and the log / validation / checkpoint intervals.
-      train_step: `(state, step) -> (state, metrics)`, `step` the steps taken before it; the
-        metrics hold "loss".
-      validate: `(step, state) -> scalars` (named "val/..."), called every `val_every` steps.
-      checkpointer: where the state goes every `ckpt_every` steps (with the validation scalars
-        when it keeps a best checkpoint).
-      writer: `write_scalars(step, dict)`.
-      data_iter: the grain iterator saved with each checkpoint (exact resume), if any.
-      progress, desc: the tqdm bar.
-      step_hook: test hook `(step, state) -> state` applied before each step.
-
-    Returns:
-      (steps taken, final state, the last validation scalars).
-
-    Raises:
-      NonFiniteLossError: the loss became NaN/inf; the message gives the first such step, and the
-        last good checkpoint stays on disk.
-    """
+    """`train_loop`'s steps from `start` with an open checkpointer and writer: (steps taken,
+    final state, the last validation scalars)."""
     from tqdm import tqdm
 
     pbar = tqdm(

@@ -286,7 +286,7 @@ def train(
             from nmjax import viz  # only the validating process draws
 
             viz.plot_motion(
-                run_dir / "figures" / f"motion_{step:07d}.png",
+                run_dir / common.FIGURES_DIR / f"motion_{step:07d}.png",
                 np.asarray(val_x[0]),
                 np.asarray(generated),
                 parents,
@@ -294,27 +294,16 @@ def train(
             )
         return scalars
 
-    checkpointer = common.Checkpointer(run_dir / common.CHECKPOINTS, keep=cfg.keep_checkpoints)
-    try:
-        step = 0
-        if resume:
-            step, state = checkpointer.restore(common.abstract_state(state))
-        writer = parallel.metric_writer(run_dir, resume_step=step if resume else None)
-        try:
-            common.train_loop(
-                state,
-                step,
-                cadence=common.Cadence.of(cfg),
-                train_step=train_step,
-                validate=validate,
-                checkpointer=checkpointer,
-                writer=writer,
-                progress=progress,
-                desc="train-dyn",
-                step_hook=step_hook,
-            )
-        finally:
-            writer.close()
-    finally:
-        checkpointer.close()
+    common.train_loop(
+        state,
+        run_dir,
+        resume=resume,
+        cadence=common.Cadence.of(cfg),
+        train_step=train_step,
+        validate=validate,
+        keep_checkpoints=cfg.keep_checkpoints,
+        progress=progress,
+        desc="train-dyn",
+        step_hook=step_hook,
+    )
     return run_dir, history

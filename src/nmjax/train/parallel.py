@@ -120,25 +120,6 @@ def prepare_run_dir(path: str | Path, **kwargs: Any) -> Path:
     return Path(path)
 
 
-class NullWriter:
-    """The metric writer of the non-primary hosts: writes nothing."""
-
-    def write_scalars(self, step: int, scalars: Mapping[str, Any]) -> None:
-        del step, scalars
-
-    def close(self) -> None:
-        pass
-
-
-def metric_writer(run_dir: str | Path, resume_step: int | None = None) -> Any:
-    """`common.MetricWriter` on process 0, a `NullWriter` on the others."""
-    from nmjax.train import common
-
-    if is_primary():
-        return common.MetricWriter(run_dir, resume_step=resume_step)
-    return NullWriter()
-
-
 # --- the mesh and placement -------------------------------------------------------------------
 
 

@@ -6,7 +6,7 @@ test split (loss terms, SC-score Eq. 21 when joints exist, a picture), orbax che
 few + best validation loss, with the grain iterator position, so a resume continues exactly),
 metrics to JSONL and TensorBoard. At the end the run folder gets affinity.npy and
 keypoint_stats.npz; `nmjax.runs.finish_phase1` adds skeleton.json and keypoints_{train,test}.npz
-(contract C10).
+(contract C10; the names are `common`'s).
 """
 
 from __future__ import annotations
@@ -275,47 +275,37 @@ def train(
     graphdef, state = build(cfg)
     state = parallel.replicate(state, mesh)
     step_fn, eval_fn = make_steps(graphdef, cfg, mesh)
-    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, BEST_METRIC)
-    start = 0
-    try:
-        if resume:
-            start, state = ckpt.restore(abstract_state(state), data_iter=data_iter)
-        writer = parallel.metric_writer(run, resume_step=start if resume else None)
 
-        def train_step(state: Any, step: int) -> tuple[Any, dict[str, jax.Array]]:
-            del step  # the data iterator is the only source of randomness
-            return step_fn(state, device_batch(next(data_iter), cfg, mesh))
+    def train_step(state: Any, step: int) -> tuple[Any, dict[str, jax.Array]]:
+        del step  # the data iterator is the only source of randomness
+        return step_fn(state, device_batch(next(data_iter), cfg, mesh))
 
-        def validate_and_draw(step: int, state: Any) -> dict[str, float]:
-            scalars, keypoints = validate(eval_fn, cfg, mesh, state, val_batches)
-            _validation_figure(run, step, model_of(graphdef, state, cfg), val_batches, keypoints)
-            return scalars
+    def validate_and_draw(step: int, state: Any) -> dict[str, float]:
+        scalars, keypoints = validate(eval_fn, cfg, mesh, state, val_batches)
+        _validation_figure(run, step, model_of(graphdef, state, cfg), val_batches, keypoints)
+        return scalars
 
-        try:
-            step, state, last_val = common.train_loop(
-                state,
-                start,
-                cadence=common.Cadence.of(cfg),
-                train_step=train_step,
-                validate=validate_and_draw,
-                checkpointer=ckpt,
-                writer=writer,
-                data_iter=data_iter,
-                progress=progress,
-                step_hook=step_hook,
-            )
-        finally:
-            writer.close()
-    finally:
-        ckpt.close()
+    end = common.train_loop(
+        state,
+        run,
+        resume=resume,
+        cadence=common.Cadence.of(cfg),
+        train_step=train_step,
+        validate=validate_and_draw,
+        keep_checkpoints=cfg.keep_checkpoints,
+        best_metric=BEST_METRIC,
+        data_iter=data_iter,
+        progress=progress,
+        step_hook=step_hook,
+    )
     if finalize:
-        write_artifacts(run, graphdef, state, val_batches, cfg)
+        write_artifacts(run, graphdef, end.state, val_batches, cfg)
     return {
         "run": str(run),
-        "start_step": start,
-        "step": step,
-        "stopped_by_time_limit": step < cfg.steps,
-        **last_val,
+        "start_step": end.start,
+        "step": end.step,
+        "stopped_by_time_limit": end.step < cfg.steps,
+        **end.validation,
     }
 
 
@@ -326,7 +316,7 @@ def _validation_figure(run, step, model, val_batches, val_kp) -> None:
     if not parallel.is_primary():
         return
     viz.plot_keypoints(
-        run / "figures" / f"keypoints_{step:07d}.png",
+        run / common.FIGURES_DIR / f"keypoints_{step:07d}.png",
         val_batches[0]["voxels"][0, 0],
         val_kp[0, 0, 0],
         affinity,
@@ -349,10 +339,10 @@ def write_artifacts(
     _, keypoints = validate(make_steps(graphdef, cfg, mesh)[1], cfg, mesh, state, val_batches)
     if not parallel.is_primary():
         return
-    atomic.save_npy(run / "affinity.npy", affinity)
+    atomic.save_npy(run / common.AFFINITY_FILE, affinity)
     flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
-    atomic.save_npz(
-        run / "keypoint_stats.npz",
+    atomic.save_npz(  # the keys are common.STATS_KEYS, which `nmjax.runs` checks
+        run / common.STATS_FILE,
         intensities=flat[:, :, 3].mean(axis=0).astype(np.float32),
         rest_positions=flat[:, :, :3].mean(axis=0).astype(np.float32),
         example_voxels=np.asarray(val_batches[0]["voxels"][0, 0], np.float32),

@@ -284,9 +284,9 @@ PRESETS = ("default", "cpu", "tiny")
 OPTIMIZER_RESETS = ("epoch", "never")
 
 # The `cpu` preset's length in epochs: at the synthetic sets' 27 training sequences and B = 2 (14
-# steps an epoch) about the 2,200 steps the preset trained before it counted epochs, which take
-# 15-20 minutes on a 2-core AVX-512 machine. Its decays sit at the same fractions of the run as
-# the dataset's own (`cpu_decay_epochs`).
+# steps an epoch) about the 2,200 steps the preset trained before it counted epochs (their wall
+# time on 2 cores: experiments/results/NOTES.md, "Sessions 9-10"). Its decays sit at the same
+# fractions of the run as the dataset's own (`cpu_decay_epochs`).
 CPU_EPOCHS = 160
 
 
@@ -410,8 +410,8 @@ def with_steps(cfg: SkelTrainConfig, steps: int) -> SkelTrainConfig:
 
 
 # Share of a fitted budget kept for what is not a train step: compiling, validations, figures,
-# checkpoints and the final export. Measured: 4.4% on the 6,000-step synth-hand cpu run (49.7
-# minutes of wall time against 6,000 x 0.476 s of step compute).
+# checkpoints and the final export; above the share the 6,000-step synth-hand cpu run spent on
+# them (its wall time against its steps' time: experiments/results/train_skel_synth-hand.json).
 FIT_OVERHEAD = 0.08
 
 

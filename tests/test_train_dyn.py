@@ -17,8 +17,8 @@ from flax import nnx
 from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
-from nmjax.config import dyn_preset
-from nmjax.models.dynamics import bone_lengths
+from nmjax.config import DynamicsConfig, dyn_preset
+from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common, dyn
 
 PARENTS = (0, 0, 1, 2, 1)  # root 0; chain 0 -> 1 -> 2 -> 3 and a branch 1 -> 4
@@ -186,6 +186,23 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     crop = poses[3 : 3 + cfg.frames]  # the logged baseline: x_t predicted by x_{t-1}
     expected = np.mean(np.sum(np.square(crop[1:] - crop[:-1]), axis=(-2, -1)))
     np.testing.assert_allclose(float(metrics["last_pose"]), expected, rtol=1e-5)
+
+
+def test_phase2_kl_is_the_mean_of_the_per_dimension_kl(fake_run):
+    """The release's reduction: mean over batch, time and latent dimension (not summed over D_z)."""
+    cfg = DynamicsConfig(latent=4, hidden=8, mlp=8, posterior_samples=2)
+    model = Dynamics(cfg, PARENTS, ORDER, rngs=nnx.Rngs(0))
+    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "train"), 6)[:3])
+    key = jax.random.key(1)
+    _, metrics = dyn.loss_fn(model, x, key, 0.5)
+    out = model(x, key)
+    mq, sq, mp, sp = (np.asarray(a, np.float64) for a in out[3:])  # (B, T, D_z) each
+    per_dimension = np.log(sp / sq) + (sq**2 + (mq - mp) ** 2) / (2 * sp**2) - 0.5
+    assert per_dimension.shape == (3, 6, 4)
+    np.testing.assert_allclose(float(metrics["kl"]), per_dimension.mean(), rtol=1e-5)
+    np.testing.assert_allclose(
+        float(metrics["loss"]), float(metrics["recon"]) + 0.5 * per_dimension.mean(), rtol=1e-5
+    )
 
 
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):

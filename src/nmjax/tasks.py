@@ -430,6 +430,91 @@ def normalization_of(points: np.ndarray) -> tuple[np.ndarray, float]:
     return bmin, scale
 
 
+# --- a motion from a point-sequence file (`--source-file`) -----------------------------------
+
+
+def load_point_sequence(path: str | os.PathLike) -> np.ndarray:
+    """Reads a point-sequence file: a NumPy .npy of shape (T, N, >= 3), xyz first (the format
+    of the authors' data/demo/source/*.npy; further columns such as normals are dropped).
+
+    Returns:
+      (T, N, 3) float32.
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError naming the file: not a .npy array, another shape, NaN / inf coordinates.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point-sequence file {path} does not exist (--source-file)")
+    try:
+        points = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as err:
+        raise ValueError(
+            f"cannot read {path} as a NumPy .npy array ({' '.join(str(err).split())}); give a "
+            "(T, N, 3) point sequence saved with numpy.save"
+        ) from err
+    if points.ndim != 3 or points.shape[-1] < 3 or 0 in points.shape:
+        raise ValueError(
+            f"{path} holds an array of shape {points.shape}; a point sequence is (T frames, N "
+            "points, >= 3 coordinates)"
+        )
+    points = np.asarray(points[..., :3], np.float32)
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{path} has NaN or inf coordinates; repair the file")
+    return points
+
+
+def point_file_keypoints(
+    detector: runs.Detector, path: str | os.PathLike, frames: int, sample_rate: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point-sequence file's motion as the release's demos take it: `frames` frames from the
+    first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
+    4, the release's episodic normalisation), voxelised, and run through the detector as one
+    crop (its spatio-temporal branch sees their mean).
+
+    Args:
+      detector: the phase-1 detector.
+      path: a (T, N, >= 3) .npy (`load_point_sequence`).
+      frames: F, the crop length.
+      sample_rate: the frame step.
+
+    Returns:
+      keypoints (F, K, 4) and voxels (F, G, G, G).
+
+    Raises:
+      ValueError: the file has fewer than (F - 1) sample_rate + 1 frames.
+    """
+    from nmjax.data.voxelize import normalize_sequence, voxelize
+
+    points = load_point_sequence(path)
+    span = (frames - 1) * sample_rate + 1
+    if len(points) < span:
+        raise ValueError(
+            f"{path} has {len(points)} frames; {frames} frames every {sample_rate} need {span} "
+            "(ask for fewer frames or a smaller --source-rate)"
+        )
+    clip, _ = normalize_sequence(points[:span:sample_rate])
+    voxels = voxelize(clip, detector.cfg.data.grid)
+    # One crop: a batch of one instead of the training batch the detector pads to.
+    one = dataclasses.replace(
+        detector.cfg, data=dataclasses.replace(detector.cfg.data, batch_size=1)
+    )
+    single = runs.Detector(detector.run, one, detector.graphdef, detector.state)
+    return single.keypoints(voxels[None])[0], voxels
+
+
+def source_file_clip(
+    skel_run: Path, path: str | os.PathLike, frames: int, sample_rate: int | None
+) -> tuple[str, np.ndarray, np.ndarray]:
+    """(name, keypoints (1, F, K, 4), first voxel frame (1, G, G, G)) of `point_file_keypoints`
+    with the phase-1 run's detector; `sample_rate` None takes the run's."""
+    detector = runs.Detector.load(skel_run)
+    rate = detector.cfg.data.sample_rate if sample_rate is None else sample_rate
+    keypoints, voxels = point_file_keypoints(detector, path, frames, rate)
+    return Path(path).stem, keypoints[None].astype(np.float32), voxels[None, 0]
+
+
 # --- on run folders: the task commands (`nmjax generate`, `interpolate`, `retarget`) ----------
 #
 # Inputs are the test-split keypoint trajectories of the phase-1 run (keypoints_test.npz). Each
@@ -491,8 +576,14 @@ def run_generate(
     seed: int = 0,
     voxels: bool = False,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Motion generation for the first `inputs` test sequences; returns the output folder.
+
+    With `source_file` the one input is instead the first `cond` frames (every `source_rate`-th,
+    default the run's sample rate) of that point-sequence file, detected as the release's
+    generation demo does (`point_file_keypoints`); its observed motion holds the last of them.
 
     Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), each sample starting with the
     T_cond observed frames; observed (I, T, K, 4) - those and the true continuation, padded with
@@ -504,9 +595,15 @@ def run_generate(
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
-    trajectories = runs.load_trajectories(skel_run, "test")
-    names, observed = pick_inputs(trajectories, inputs, cond + gen)
-    real_frames = np.array([min(len(trajectories[n]), cond + gen) for n in names], np.int32)
+    first = None
+    if source_file is not None:
+        name, observed, first = source_file_clip(skel_run, source_file, cond, source_rate)
+        names, real_frames = [name], np.array([cond], np.int32)
+        observed = np.concatenate([observed, np.repeat(observed[:, -1:], gen, axis=1)], axis=1)
+    else:
+        trajectories = runs.load_trajectories(skel_run, "test")
+        names, observed = pick_inputs(trajectories, inputs, cond + gen)
+        real_frames = np.array([min(len(trajectories[n]), cond + gen) for n in names], np.int32)
     graphdef, state = nnx.split(model)
     keypoints, _ = generate_jit(
         graphdef,
@@ -531,10 +628,11 @@ def run_generate(
 
         detector = runs.Detector.load(skel_run)
         data = detector.cfg.data
-        seqs = {s.name: s for s in load_sequences(data.name, "test", data.root)}
-        first = np.stack(
-            [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
-        )
+        if first is None:
+            seqs = {s.name: s for s in load_sequences(data.name, "test", data.root)}
+            first = np.stack(
+                [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
+            )
         decoded = [detector.decode(keypoints[:, s], first) for s in range(samples)]
         atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):
@@ -558,8 +656,14 @@ def run_interpolate(
     vrnn_run: str | Path | None = None,
     seed: int = 0,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Interpolation between frames 0 and `gap` of the first `inputs` test sequences.
+
+    With `source_file` the one input is instead the first gap + 1 frames (every `source_rate`-th,
+    default the run's sample rate) of that point-sequence file, detected as one crop as the
+    release's interpolation demo does (`point_file_keypoints`).
 
     Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names, parents) and per input a
     GIF and PNG strip with one panel per method and the truth.
@@ -568,7 +672,11 @@ def run_interpolate(
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "interpolate"
-    names, truth = pick_inputs(runs.load_trajectories(skel_run, "test"), inputs, gap + 1)
+    if source_file is not None:
+        name, truth, _ = source_file_clip(skel_run, source_file, gap + 1, source_rate)
+        names = [name]
+    else:
+        names, truth = pick_inputs(runs.load_trajectories(skel_run, "test"), inputs, gap + 1)
     vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
     interp = Interpolators(nnx.split(model), vrnn, trajectories)
     methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
@@ -621,8 +729,15 @@ def run_retarget(
     points: int = 20000,
     seed: int = 0,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Retargets a test motion of the run onto a target mesh (Fig. 6, appendix D.4).
+
+    The source motion is the test sequence `source` (default the first), or with `source_file`
+    the first `frames` frames (every `source_rate`-th, default the run's sample rate) of that
+    point-sequence file, detected as one crop as the release's retargeting demo does
+    (`point_file_keypoints`; the demo takes 40 frames at rate 1).
 
     1. Target skeleton: `points` surface samples of the mesh, normalised (DESIGN section 4),
        voxelised, keypoints by the phase-1 detector; topology = the run's skeleton.
@@ -643,9 +758,14 @@ def run_retarget(
     mesh = load_mesh(target)
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / f"retarget-{Path(target).stem}"
-    trajectories = runs.load_trajectories(skel_run, "test")
-    names = None if source is None else [source]
-    (name,), x_src = pick_inputs(trajectories, 1, frames, names)
+    if source_file is not None:
+        if source is not None:
+            raise ValueError("give either --source NAME or --source-file PATH, not both")
+        name, x_src, _ = source_file_clip(skel_run, source_file, frames, source_rate)
+    else:
+        trajectories = runs.load_trajectories(skel_run, "test")
+        names = None if source is None else [source]
+        (name,), x_src = pick_inputs(trajectories, 1, frames, names)
     skeleton = runs.read_skeleton(skel_run)
     intensities = runs.skeleton_intensities(skel_run)
 

@@ -19,9 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-SHARED = Path("/work/shared/release")
-TSV = SHARED / "aist_state_dict.tsv"
-OPTIONS_JSON = SHARED / "aist_options.json"
+# Copies of the description of the authors' checkpoint: every tensor's name, shape, dtype and
+# module, in order, and every field of its opt.pickle.
+FIXTURE = Path(__file__).parent / "release_fixture"
+TSV = FIXTURE / "aist_state_dict.tsv"
+OPTIONS_JSON = FIXTURE / "aist_options.json"
 STORAGES = {
     np.dtype("float32"): "FloatStorage",
     np.dtype("float64"): "DoubleStorage",

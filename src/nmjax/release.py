@@ -311,6 +311,7 @@ SUPPORTED_OPTIONS = {
     "input_dim": 3,
     "fixed_sigma": 1,
     "gaussian_cat_type": "none",
+    "is_binarized": 1,  # occupancy voxels
 }
 GRAPH_LOSS_VERSIONS = {0: True, 1: False}  # graph_loss_ver -> LossWeights.intensity_weighted
 POSTERIOR_SAMPLES = 10  # the release's SAMPLE_NUM, best of S in training and generation

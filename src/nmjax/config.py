@@ -214,6 +214,13 @@ class DynTrainConfig:
     skel_run: str | None = None  # default: latest phase-1 run of `data`
     data: str = "synth-hand"
     model: DynamicsConfig = field(default_factory=DynamicsConfig)
+    # What the model is fed (DYN_INPUTS). "crop", the release's: every T-frame crop normalised
+    # with its own bounding box and run through the frozen phase-1 detector, so the keypoints (and
+    # the detector's temporal mean behind them) are those of that crop; generation and
+    # interpolation condition on clips detected the same way. "sequence": crops cut from the
+    # whole-sequence keypoints_*.npz (each sequence normalised with one box, detected in
+    # consecutive windows), which needs no detector in phase 2: the named fast route.
+    inputs: str = "crop"
     frames: int = 20  # T_dyna
     batch_size: int = 16
     steps: int = 20_000
@@ -230,6 +237,8 @@ class DynTrainConfig:
     keep_checkpoints: int = 3
     run: str | None = None
 
+
+DYN_INPUTS = ("crop", "sequence")
 
 # The `cpu` preset's KL weight. Measured (on a synth-arm phase-1 run, 6,000 steps) when the KL was
 # still summed over the latent dimensions: there 1e-3 lowered the validation reconstruction (best

@@ -271,6 +271,10 @@ def test_command_line_options_map_onto_the_config():
     )
     assert cfg.model.model == "vrnn" and cfg.steps == 7
     assert cfg.model.hidden == dyn_preset("synth-hand", "cpu").model.hidden
+    # --steps on the default preset (in epochs) turns the run into a step count.
+    cfg = dyn_config(parse_dyn(["--steps", "50"]))
+    assert (cfg.epochs, cfg.steps, cfg.optimizer_reset) == (0, 50, "epoch")
+    assert dyn_config(parse_dyn([])).epochs == 150
     cfg = dyn_config(parse_dyn(["--set", "kl_weight=1e-5", "--set", "model.latent=8"]))
     assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8 and cfg.model.model == "nm"
     with pytest.raises(ValueError, match="no_such_field"):  # an unknown field is named

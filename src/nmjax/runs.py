@@ -32,7 +32,7 @@ import numpy as np
 from flax import nnx
 
 from nmjax import atomic
-from nmjax.config import DynTrainConfig, SkelTrainConfig
+from nmjax.config import DynTrainConfig, SkelTrainConfig, resolve_epochs
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
 from nmjax.skeleton import (
@@ -695,6 +695,8 @@ def train_dynamics(
         def inputs() -> dyn.Phase2Inputs:
             return crop_inputs(detector, seqs["train"], seqs["test"], cfg.frames, progress)
 
+    train_count = len(trajectories["train"]) if cfg.inputs == "sequence" else len(seqs["train"])
+    cfg = resolve_epochs(cfg, train_count, cfg.batch_size)
     return dyn.train(
         cfg,
         (skeleton.parents, skeleton.order),

@@ -203,9 +203,12 @@ def dyn_config(args: argparse.Namespace):
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=args.model))
     if args.skel_run is not None:
         cfg = dataclasses.replace(cfg, skel_run=args.skel_run)
-    for name in ("steps", "seed", "batch_size", "run"):
+    for name in ("seed", "batch_size", "run"):
         if getattr(args, name) is not None:
             cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
+    if args.steps is not None:  # a new run counts in steps instead of epochs
+        resized = dataclasses.replace(cfg, steps=args.steps)
+        cfg = resized if args.resume else dataclasses.replace(resized, epochs=0)
     return apply_overrides(cfg, args.overrides)
 
 

@@ -288,8 +288,8 @@ def default_run_dir(cfg: DynTrainConfig) -> Path:
 
 def check_config(cfg: DynTrainConfig) -> None:
     """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
-    common.check_positive(cfg, ("steps", "batch_size", "frames", "log_every", "val_every"))
-    common.check_positive(cfg, ("ckpt_every",))
+    common.check_positive(cfg, ("batch_size", "frames", "log_every", "val_every", "ckpt_every"))
+    common.check_schedule(cfg)
     if cfg.inputs not in DYN_INPUTS:
         raise ValueError(
             f"inputs = {cfg.inputs!r} is not a phase-2 input; valid inputs: {', '.join(DYN_INPUTS)}"
@@ -333,6 +333,11 @@ def train(
       NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
     """
     check_config(cfg)
+    if cfg.epochs > 0 and not cfg.steps_per_epoch:
+        raise ValueError(
+            "dyn.train: a schedule in epochs needs its steps resolved from the training set "
+            "first (config.resolve_epochs; nmjax.runs.train_dynamics does it)"
+        )
     parents, order = skeleton
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")

@@ -15,7 +15,9 @@ K=28, whose step needs more memory than a development machine has. `--conv` pick
 - winograd: F(4x4x4, 3x3x3) for every float32 3x3x3 kernel, stacked taps for the others;
 - native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
 
-Writes nothing; prints one line per form (add --out FILE.json for the numbers).
+Also XLA's operation count of the compiled step (`cost_analysis()["flops"]`), which does not
+depend on the machine's load. Writes nothing; prints one line per form (add --out FILE.json for
+the numbers).
 """
 
 from __future__ import annotations
@@ -54,6 +56,8 @@ def step_memory(cfg, form: str) -> dict:
     compiled = lowered.compile()
     seconds = time.perf_counter() - tic
     analysis = compiled.memory_analysis()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost  # one dict per device in older jax
     return {
         "conv": form,
         "B": cfg.data.batch_size,
@@ -66,6 +70,9 @@ def step_memory(cfg, form: str) -> dict:
         "temp_bytes": int(analysis.temp_size_in_bytes),
         "argument_bytes": int(analysis.argument_size_in_bytes),
         "output_bytes": int(analysis.output_size_in_bytes),
+        # XLA's operation count of the compiled step: independent of the machine's load, so two
+        # networks' costs compare on a busy machine too.
+        "flops": float(cost.get("flops", float("nan"))),
     }
 
 
@@ -88,7 +95,8 @@ def main() -> None:
             f"conv={form:<8} B={row['B']} T={row['T']} G={row['G']} C={row['C']} K={row['K']} "
             f"temp {row['temp_bytes']:,} bytes ({row['temp_bytes'] / 2**30:.2f} GiB), "
             f"arguments {row['argument_bytes'] / 2**30:.2f} GiB, outputs "
-            f"{row['output_bytes'] / 2**30:.2f} GiB, compiled in {row['compile_s']:.0f} s",
+            f"{row['output_bytes'] / 2**30:.2f} GiB, {row['flops'] / 1e9:.1f} GFLOP, "
+            f"compiled in {row['compile_s']:.0f} s",
             flush=True,
         )
     if args.out is not None:

@@ -1,9 +1,11 @@
 """Phase 2 on a synthetic body, with learning curves written to experiments/results/.
 
-Uses a phase-1 run when one is given (--skel-run, contract C10). Without one it builds an *oracle*
-stand-in: the generator's ground-truth joints (normalised per sequence with the point cloud's
-bounding box, alpha = 1) and its true parent tree, written in the C10 layout. The oracle measures
-the dynamics module alone; the result file says which input was used.
+Uses a phase-1 run when one is given (--skel-run, contract C10), with the phase-2 inputs of the
+preset ("crop": its detector on every crop) unless --inputs says otherwise. Without one it builds
+an *oracle* stand-in: the generator's ground-truth joints (normalised per sequence with the point
+cloud's bounding box, alpha = 1) and its true parent tree, written in the C10 layout and read as
+"sequence" inputs (there is no detector). The oracle measures the dynamics module alone; the
+result file says which input was used.
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm
 
@@ -22,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic
-from nmjax.config import dyn_preset
+from nmjax import atomic, runs
+from nmjax.config import DYN_INPUTS, dyn_preset
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
 from nmjax.train import common
@@ -105,19 +107,26 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["nm", "vrnn"])
     parser.add_argument("--sequences", type=int, default=200)
     parser.add_argument("--workdir", default="runs/experiments")
+    parser.add_argument(
+        "--inputs", choices=DYN_INPUTS, default=None, help="phase-2 inputs of a --skel-run"
+    )
     args = parser.parse_args()
 
     workdir = Path(args.workdir)
+    inputs = args.inputs or dyn_preset(args.data, args.preset).inputs
     if args.skel_run is None:
         skel_run = oracle_run(args.data, workdir / f"oracle-{args.data}", args.sequences, seed=0)
         source = "oracle: ground-truth joints of the synthetic generator (alpha = 1)"
+        inputs = "sequence"  # the oracle has no detector to run on crops
     else:
-        skel_run, source = Path(args.skel_run), f"phase-1 run {args.skel_run}"
-    runs, summary = {}, {}
+        skel_run = Path(args.skel_run)
+        source = f"phase-1 run {args.skel_run}, phase-2 inputs '{inputs}'"
+    curves, summary = {}, {}
     for model in args.models:
         cfg = dyn_preset(args.data, args.preset)
         cfg = dataclasses.replace(
             cfg,
+            inputs=inputs,
             skel_run=str(skel_run),
             model=dataclasses.replace(cfg.model, model=model),
             steps=args.steps,
@@ -132,7 +141,7 @@ def main() -> None:
             shutil.rmtree(run_dir)
         run_dir, _ = runs.train_dynamics(cfg, progress=False)
         records = common.read_metrics(run_dir)
-        runs[model] = records
+        curves[model] = records
         rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]
         final = next(r for r in reversed(records) if "val/recon" in r)
         summary[model] = {
@@ -151,10 +160,10 @@ def main() -> None:
             "sequences": args.sequences if args.skel_run is None else None,
             "preset": args.preset,
             **summary,
-            "curves": runs,
+            "curves": curves,
         },
     )
-    plot_curves(stem.with_suffix(".png"), runs, f"phase 2 on {args.data} ({source})")
+    plot_curves(stem.with_suffix(".png"), curves, f"phase 2 on {args.data} ({source})")
     print(f"wrote {stem}.json and {stem}.png")
 
 

@@ -48,6 +48,7 @@ def test_phase2_losses_are_pinned(tmp_path):
         log_every=1,
         val_every=4,
         ckpt_every=4,
+        inputs="sequence",  # the fake phase-1 run has keypoints, no detector
     )
     runs.train_dynamics(cfg, progress=False)
     np.testing.assert_allclose(_train_losses(tmp_path / "dyn"), DYN_LOSSES, rtol=RTOL)

@@ -134,7 +134,16 @@ def test_missing_export_is_an_error_naming_the_command(tmp_path, capsys, fake_ru
         phase1 / "skeleton.json", json.loads((fake_run / "skeleton.json").read_text())
     )
     argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(phase1), "--preset", "tiny"]
-    assert nmjax_main([*argv, "--run", str(tmp_path / "dyn")]) == 2
+    sequence = ["--set", "inputs=sequence"]
+    assert nmjax_main([*argv, *sequence, "--run", str(tmp_path / "dyn")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert f"nmjax export-keypoints --run {phase1}" in line
     assert not (tmp_path / "dyn").exists() and not list(phase1.glob("keypoints_*"))
+    # "crop" inputs (the default) need the detector: its absence names both ways out.
+    assert nmjax_main([*argv, "--run", str(tmp_path / "dyn")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "no phase-1 detector checkpoint" in line and "inputs=sequence" in line
+    assert not (tmp_path / "dyn").exists()
+    assert nmjax_main([*argv, "--set", "inputs=video", "--run", str(tmp_path / "dyn")]) == 2
+    assert "valid inputs: crop, sequence" in capsys.readouterr().err
+    assert not (tmp_path / "dyn").exists()

@@ -368,13 +368,14 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
     as the release's dataset/config.py does), grid G, K, sigma_g, the N affinities, the sample
     rate, the phase-1 loss weights (complexity = the release's sparsity_const_weight, the term
     its code calls the paper's complexity loss), D_z, D_h, the phase-2 crop T = Ttot, batch,
-    learning rate, KL weight and seed. The release trains phase 2 without clipping (DESIGN 6b).
+    epochs, learning rate, KL weight and seed (the phase-2 preset supplies the rest of the
+    release's recipe: Adam restarted every epoch, no clipping).
 
     Raises:
       ValueError: an option that selects a network nmjax does not implement, a missing option,
         or a dataset nmjax does not know.
     """
-    from nmjax.config import DynamicsConfig, DynTrainConfig, dataset_spec, skel_preset
+    from nmjax.config import DynamicsConfig, dataset_spec, dyn_preset, skel_preset
 
     for name, value in SUPPORTED_OPTIONS.items():
         if _option(options, name) != value:
@@ -426,9 +427,9 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         seed=seed,
         run=str(run / "skel"),
     )
-    dyn = DynTrainConfig(
+    dyn = dataclasses.replace(
+        dyn_preset(dataset, "default"),
         skel_run=str(run / "skel"),
-        data=dataset,
         model=DynamicsConfig(
             model="nm",
             latent=int(_option(options, "nlatent_kypt")),
@@ -438,8 +439,9 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         ),
         frames=int(_option(options, "Ttot")),
         batch_size=int(_option(options, "nbatch")),
+        epochs=int(_option(options, "nepoch")),
         learning_rate=learning_rate,
-        clip_norm=0.0,
+        clip_norm=0.0,  # its clip_grad_norm_ runs on gradients already applied (DESIGN 6b)
         kl_weight=float(_option(options, "kl_kypt_weight")),
         seed=seed,
         run=str(run / "dyn"),

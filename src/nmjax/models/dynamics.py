@@ -371,22 +371,26 @@ class Dynamics(nnx.Module):
         return out.keypoints, out.rotations
 
     def generate(
-        self, x_cond: jax.Array, num_frames: int, key: jax.Array, samples: int = 1
+        self, x_cond: jax.Array, num_frames: int, key: jax.Array, samples: int | None = None
     ) -> tuple[jax.Array, jax.Array]:
         """Motion generation (Sec. 5): T_cond posterior steps, then `num_frames` prior samples.
 
-        Bone lengths are measured on the conditioning frames (Eq. 20), so every generated frame of
-        the "nm" model keeps them exactly.
+        The observed frames are inferred with the training rule, best of S posterior samples per
+        step (the release's generation uses its S = 10). Bone lengths are measured on the
+        conditioning frames (Eq. 20), so every generated frame of the "nm" model keeps them
+        exactly.
 
         Args:
           x_cond: (B, T_cond, K, 4) observed keypoints.
           num_frames: T_gen (static).
           key: PRNG key.
-          samples: S of the best-of-S rule on the observed frames.
+          samples: S of the best-of-S rule on the observed frames (static); default the config's
+            `posterior_samples`, 1 = one posterior sample per step.
 
         Returns:
           keypoints (B, T_cond + T_gen, K, 4) and local rotations (B, T_cond + T_gen, K, 3, 3).
         """
+        samples = self.samples if samples is None else samples
         lengths = bone_lengths(x_cond, self.parents)
         key_cond, key_gen = jax.random.split(key)
         keys_cond = jax.random.split(key_cond, x_cond.shape[1])

@@ -579,14 +579,19 @@ def test_import_refuses_an_existing_folder_and_writes_nothing_on_failure(
     (taken / "keep.txt").write_text("mine")
     with pytest.raises(ValueError, match="--overwrite"):
         release.import_release(pth, opt, taken, progress=False)
+    # --overwrite replaces an earlier import only, never a folder of something else.
+    with pytest.raises(ValueError, match="not a folder `nmjax import-release` wrote"):
+        release.import_release(pth, opt, taken, overwrite=True, progress=False)
     assert [p.name for p in taken.iterdir()] == ["keep.txt"]
     # No dataset and no --example: refused after reading, before writing anything.
     with pytest.raises(FileNotFoundError, match="--example"):
         release.import_release(pth, opt, tmp_path / "new", progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
-    # --example gives the keypoint statistics; --overwrite replaces the folder.
-    skel_run, dyn_run = release.import_release(
-        pth, opt, taken, overwrite=True, example=root / "motion.npy", progress=False
-    )
-    assert not (taken / "keep.txt").exists() and (skel_run / "skeleton.json").is_file()
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken"]
+    # --example gives the keypoint statistics; --overwrite replaces the earlier import.
+    example = root / "motion.npy"
+    skel_run, _ = release.import_release(pth, opt, "new", example=example, progress=False)
+    assert skel_run == Path("new/skel") and (skel_run / "skeleton.json").is_file()
+    (skel_run / "mark").write_text("old")
+    release.import_release(pth, opt, "new", overwrite=True, example=example, progress=False)
+    assert not (skel_run / "mark").exists() and (skel_run / "skeleton.json").is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "taken"]

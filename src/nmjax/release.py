@@ -891,14 +891,25 @@ def _save_run(folder: Path, cfg: Any, model: Any, optimizer: Any) -> None:
 
 
 def check_run_folder(run: str | Path, overwrite: bool) -> Path:
-    """`run` as a Path, after refusing an existing one (ValueError) unless `overwrite`."""
+    """`run` as a Path, after refusing (ValueError) a file, or a folder that holds anything
+    unless `overwrite`; `overwrite` replaces only an earlier import (a folder whose skel/ and
+    dyn/ hold release.json), never another folder.
+    """
     run = Path(run)
-    if run.exists() and not overwrite:
+    if not run.exists() or (run.is_dir() and not any(run.iterdir())):
+        return run
+    if not run.is_dir():
+        raise ValueError(f"--run {run} is a file; give a folder path")
+    if not overwrite:
         raise ValueError(
             f"--run {run} already exists; pass --overwrite to replace it, or choose another folder"
         )
-    if run.exists() and not run.is_dir():
-        raise ValueError(f"--run {run} is a file; give a folder path")
+    earlier = all((run / sub / PROVENANCE_FILE).is_file() for sub in ("skel", "dyn"))
+    if not earlier or run.resolve() == Path.cwd().resolve():
+        raise ValueError(
+            f"--run {run} is not a folder `nmjax import-release` wrote, so --overwrite does not "
+            "replace it; choose another folder"
+        )
     return run
 
 
@@ -955,8 +966,11 @@ def import_release(
         keypoints, voxels = keypoint_motion(detector, skel_cfg, example)
         bar.update()
         bar.set_postfix_str("write")
-        run.parent.mkdir(parents=True, exist_ok=True)
-        tmp = run.parent / f".{run.name}.import-{datetime.datetime.now().strftime('%H%M%S%f')}"
+        target = run.resolve()
+        target.parent.mkdir(parents=True, exist_ok=True)
+        tmp = (
+            target.parent / f".{target.name}.import-{datetime.datetime.now().strftime('%H%M%S%f')}"
+        )
         try:
             _save_run(tmp / "skel", skel_cfg, detector, skel.StepSettings.of(skel_cfg).optimizer)
             write_phase1_artifacts(tmp / "skel", detector, keypoints, voxels)
@@ -964,9 +978,9 @@ def import_release(
             _save_run(tmp / "dyn", dyn_cfg, dynamics, dyn.StepSettings.of(dyn_cfg).optimizer)
             for folder in ("skel", "dyn"):
                 atomic.write_json(tmp / folder / PROVENANCE_FILE, record)
-            if run.exists():
-                shutil.rmtree(run)
-            tmp.rename(run)
+            if target.exists():
+                shutil.rmtree(target)
+            tmp.rename(target)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
             raise

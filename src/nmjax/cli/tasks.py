@@ -48,6 +48,8 @@ def _run(p: Parser, argv: list[str], function: str, positive_options: tuple[str,
     positive(p, args, *positive_options)
     if getattr(args, "source", None) is not None and args.source_file is not None:
         p.error("give either --source NAME or --source-file PATH, not both")
+    if args.source_rate is not None and args.source_file is None:
+        p.error("--source-rate applies to --source-file only")
     from nmjax import tasks
 
     out = getattr(tasks, function)(**vars(args))

@@ -258,7 +258,7 @@ def run_variant(
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)
-    atomic.write_json(run / "study_eval.json", results)
+    provenance.write_json(run / "study_eval.json", results, stamp)
     skeleton = json.loads((run / "skeleton.json").read_text())
     return {
         "data": data,

@@ -29,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from nmjax import atomic
+from nmjax import provenance
 from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import blocks
@@ -37,6 +37,12 @@ from nmjax.models.detector import KeypointDetector
 from nmjax.train import common, parallel, skel
 
 FORMS = blocks.CONV_FORMS
+METRICS = {
+    "temp_bytes": "memory_analysis() temporary bytes of the compiled phase-1 train step "
+    "(activations kept for the backward pass and scratch), compiled, never run",
+    "argument_bytes, output_bytes": "memory_analysis() bytes of its arguments and outputs",
+    "compile_s": "seconds to lower and compile the step",
+}
 
 
 def step_memory(cfg, form: str) -> dict:
@@ -85,6 +91,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
     args = parser.parse_args()
     cfg = apply_overrides(skel_preset(args.data, args.preset), args.overrides)
+    stamp = provenance.stamp(METRICS)
     env = environment()
     print(" ".join(f"{k}={v}" for k, v in env.items()))
     rows = []
@@ -100,7 +107,9 @@ def main() -> None:
             flush=True,
         )
     if args.out is not None:
-        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        provenance.write_json(
+            args.out, {"environment": env, "args": vars(args), "rows": rows}, stamp
+        )
         print(f"wrote {args.out}")
 
 

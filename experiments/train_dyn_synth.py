@@ -11,7 +11,8 @@ result file says which input was used.
 
 Writes experiments/results/train_dyn_<data>.json (configuration, final validation, steps/s,
 curves) and .png (training loss; validation reconstruction against "repeat the last pose";
-generation against "hold the last observed pose").
+generation against "hold the last observed pose"), both stamped with the commit, machine and
+metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -24,13 +25,22 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic, runs
+from nmjax import atomic, provenance, runs
 from nmjax.config import DYN_INPUTS, dyn_preset
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
 from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"
+METRICS = {
+    "train/recon": "Eq. 3 reconstruction with the training rule (best of S posterior samples)",
+    "train/last_pose, val/last_pose": "Eq. 3 of predicting x_t by x_{t-1} on the same frames",
+    "val/recon": "posterior reconstruction error of one sample, frames 2..T",
+    "val/recon_best": "the same, best of S samples",
+    "val/gen": "error of the prior rollout after T/4 observed frames on the generated frames",
+    "val/gen_hold": "the same for holding the last observed pose",
+    "train_steps_per_s_median": "median of the logged training steps/s, the first left out",
+}
 
 
 def topological_order(parents: list[int]) -> list[int]:
@@ -111,7 +121,7 @@ def main() -> None:
         "--inputs", choices=DYN_INPUTS, default=None, help="phase-2 inputs of a --skel-run"
     )
     args = parser.parse_args()
-
+    stamp = provenance.stamp(METRICS)
     workdir = Path(args.workdir)
     inputs = args.inputs or dyn_preset(args.data, args.preset).inputs
     if args.skel_run is None:
@@ -152,7 +162,7 @@ def main() -> None:
         print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"train_dyn_{args.data}"
-    atomic.write_json(
+    provenance.write_json(
         stem.with_suffix(".json"),
         {
             "data": args.data,
@@ -162,8 +172,10 @@ def main() -> None:
             **summary,
             "curves": curves,
         },
+        stamp,
     )
     plot_curves(stem.with_suffix(".png"), curves, f"phase 2 on {args.data} ({source})")
+    provenance.stamp_png(stem.with_suffix(".png"), stamp)
     print(f"wrote {stem}.json and {stem}.png")
 
 

@@ -130,6 +130,7 @@ def test_main_times_both_sides_and_writes_json(arm_root, tmp_path, capsys):
     argv += ["--set", f"data.root={arm_root}", "--set", "data.grid=8", "--set", "model.grid=8"]
     assert script.main([*argv, "--out", str(out)]) == 0
     result = json.loads(out.read_text())
+    assert result["provenance"]["metrics"] == script.METRICS
     env = result["environment"]
     assert env["cpu_count"] >= 1 and env["torch_threads"] == 1 and env["torch"] and env["jax"]
     assert "load_avg_1min" in env

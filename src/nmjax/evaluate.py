@@ -25,7 +25,8 @@
   voxels of the same clip on difference voxels. Reported x1e3 (the paper does not state its
   scale); mean and 95% confidence interval over test sequences.
 
-Writes `<out>/results.json`, `<out>/tables.md` and `<out>/mcd.png` (default out: `<run>/eval`).
+Writes `<out>/results.json`, `<out>/tables.md` and `<out>/mcd.png` (default out: `<run>/eval`),
+each stamped with the commit, machine and metric definitions (`nmjax.provenance`).
 
     nmjax evaluate --run RUN [--vrnn-run RUN2] --generation [--horizons 25,100,300] [--samples 10]
 
@@ -51,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, runs, tasks
+from nmjax import atomic, metrics, provenance, runs, tasks
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
 from nmjax.train import common
@@ -59,6 +60,32 @@ from nmjax.train import common
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
 METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
 MCD_SCALE = 1e3
+# One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
+PHASE1_METRICS = {
+    "sc": "SC-score, Eq. 21 as published: in each frame keypoints with alpha < 0.2 are no "
+    "candidates for a joint's nearest keypoint; counts over all test frames (Table 1)",
+    "sc_fixed_nodes": "Eq. 21 over the fixed node set of the pruned skeleton in every frame",
+    "tracking": "4D-tracking Chamfer x1e4 (Table 2): reconstruction thresholded at 0.5 against "
+    "the crop's voxels, mean per sequence; mean and 95% CI over test sequences",
+    "bone_length_variation": "std / mean of each bone's length of the pruned skeleton over a "
+    "crop of T frames, mean over bones and crops",
+    "joint_distance": "mean distance from a ground-truth joint to its nearest kept node (cube "
+    "[-1, 1]^3), mean over joints and frames per sequence; mean and 95% CI over sequences",
+    "joint_coverage_0.05, joint_coverage_0.10": "share of joint-frames with a kept node within "
+    "0.05 (0.10)",
+    "edge_precision": "share of skeleton edges whose nodes' joints are the same or adjacent in "
+    f"the true tree (edge_precision_within_{metrics.TWO_HOPS}_hops: within two hops)",
+    "bone_recall": "share of true bones whose joints' nodes are the same or adjacent in the "
+    "skeleton",
+    "distinct_nodes": "kept nodes that are some joint's most frequent nearest kept node",
+}
+INTERPOLATION_METRICS = {
+    "interpolation": "M-CD (Eq. 22) x1e3, Tables 11-12: keypoints between keyframes SR frames "
+    "apart decoded to voxels (phase-1 decoder, threshold 0.5), compared with the true voxels "
+    "on difference voxels; mean and 95% CI over test sequences",
+    "interpolation_keypoints": "squared xyz error of the in-between keypoints against the "
+    "detector's, summed over K, mean over frames; mean and 95% CI over test sequences",
+}
 
 
 # --- statistics -------------------------------------------------------------------------------
@@ -453,6 +480,7 @@ GEN_MEASURES = {
         "95% CI over real clips",
     ),
 }
+GENERATION_METRICS = {name: title for name, (title, _) in GEN_MEASURES.items()}
 
 
 def conditioning_clips(
@@ -886,6 +914,7 @@ def evaluate_generation_run(
     generation.png into `out` (default RUN/eval). `real_keypoints`: an .npz of keypoint
     sequences (the layout of keypoints_test.npz) to cut the real clips from."""
     run = Path(run)
+    stamp = provenance.stamp(GENERATION_METRICS)
     if runs.run_kind(run) != "dyn":
         raise ValueError(
             f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
@@ -924,6 +953,7 @@ def evaluate_generation_run(
         conditioning=conditioning,
     )
     results = {
+        "provenance": stamp,
         "run": str(run),
         "skel_run": str(skel_run),
         "vrnn_run": None if vrnn_run is None else str(vrnn_run),
@@ -932,12 +962,13 @@ def evaluate_generation_run(
     }
     out = Path(out) if out is not None else run / "eval"
     atomic.write_json(out / "generation.json", results)
-    atomic.write_text(out / "generation.md", generation_markdown(results))
+    provenance.write_markdown(out / "generation.md", generation_markdown(results), stamp)
     from nmjax import viz  # matplotlib only where a picture is drawn
 
     viz.plot_generation(
         out / "generation.png", results, reference=REFERENCE, title=f"{run.name}: generation"
     )
+    provenance.stamp_png(out / "generation.png", stamp)
     return results
 
 
@@ -983,8 +1014,10 @@ def evaluate_run(
 ) -> dict:
     """Evaluates a phase-2 run (all tables) or a phase-1 run (Tables 1-2); writes the results."""
     run = Path(run)
-    results: dict[str, Any] = {"run": str(run)}
-    if runs.run_kind(run) == "dyn":
+    dyn = runs.run_kind(run) == "dyn"
+    definitions = {**PHASE1_METRICS, **(INTERPOLATION_METRICS if dyn else {})}
+    results: dict[str, Any] = {"provenance": provenance.stamp(definitions), "run": str(run)}
+    if dyn:
         dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
         results["skel_run"] = str(skel_run)
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
@@ -1021,9 +1054,10 @@ def evaluate_run(
         }
     out = Path(out) if out is not None else run / "eval"
     atomic.write_json(out / "results.json", results)
-    atomic.write_text(out / "tables.md", markdown_tables(results))
+    provenance.write_markdown(out / "tables.md", markdown_tables(results), results["provenance"])
     if "interpolation" in results:
         from nmjax import viz  # matplotlib only where a picture is drawn
 
         viz.plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
+        provenance.stamp_png(out / "mcd.png", results["provenance"])
     return results

@@ -469,7 +469,7 @@ def test_import_writes_two_run_folders_of_the_imported_values(small, imported, m
     ckpt = release.read_checkpoint(pth)
     record = json.loads((dyn_run / "release.json").read_text())
     assert record["sha256"] == ckpt.sha256 and record["options"] == release.read_options(opt)
-    assert "commit" in record["nmjax"] and record["tensors"] == len(ckpt.tensors)
+    assert "commit" in record["provenance"] and record["tensors"] == len(ckpt.tensors)
     # The imported values, restored through the run-folder readers; the skeleton is Algorithm 1
     # on the imported affinity.
     tensors = ckpt.tensors

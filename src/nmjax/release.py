@@ -31,7 +31,6 @@ import io
 import json
 import pickle
 import shutil
-import subprocess
 import zipfile
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
@@ -780,35 +779,10 @@ PROVENANCE_FILE = "release.json"
 DEMO_SOURCE = "data/demo/source/gHO_sBM_cAll_d20_mHO1_ch05.npy"  # in the authors' repository
 
 
-def nmjax_commit() -> str | None:
-    """The git commit of the nmjax source tree in use ("<sha>" or "<sha>-dirty"), None when the
-    package does not run from a git checkout."""
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, check=True
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--", "."],
-            cwd=here,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return f"{sha}-dirty" if dirty else sha
-
-
-def provenance(checkpoint: Path, ckpt: Checkpoint, options_path: Path, options: Mapping) -> dict:
-    """What release.json records: the checkpoint (path, bytes, sha256), the options as read,
-    the nmjax version and commit, and the time of the import."""
-    from importlib import metadata
-
-    try:
-        version = metadata.version("nmjax")
-    except metadata.PackageNotFoundError:
-        version = None
+def import_record(checkpoint: Path, ckpt: Checkpoint, options_path: Path, options: Mapping) -> dict:
+    """What release.json records beside the provenance stamp (`nmjax.provenance`: the nmjax
+    commit and working tree, date, command, machine, versions): the checkpoint (path, bytes,
+    sha256, tensors, values) and the options as read."""
     return {
         "checkpoint": str(checkpoint.resolve()),
         "sha256": ckpt.sha256,
@@ -817,8 +791,6 @@ def provenance(checkpoint: Path, ckpt: Checkpoint, options_path: Path, options: 
         "values": int(sum(a.size for a in ckpt.tensors.values())),
         "options_file": str(options_path.resolve()),
         "options": json.loads(json.dumps(dict(options), default=repr)),
-        "nmjax": {"version": version, "commit": nmjax_commit()},
-        "imported": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
     }
 
 
@@ -930,7 +902,8 @@ def import_release(
     skel/: config.json, checkpoints/0, affinity.npy, keypoint_stats.npz (of `keypoint_motion`),
     skeleton.json and its figure (`runs.extract_run_skeleton`: Algorithm 1 on the imported
     affinity); dyn/: config.json naming skel as its phase-1 run, checkpoints/0; and in both
-    release.json (`provenance`). Nothing is left behind when a step fails.
+    release.json (`import_record` and the `nmjax.provenance` stamp). Nothing is left behind when
+    a step fails.
 
     Returns:
       (skel folder, dyn folder).
@@ -942,7 +915,7 @@ def import_release(
     """
     from tqdm import tqdm
 
-    from nmjax import atomic, runs
+    from nmjax import provenance, runs
     from nmjax.tasks import load_point_sequence
     from nmjax.train import dyn, skel
 
@@ -959,7 +932,8 @@ def import_release(
     if example is None:
         check_dataset(skel_cfg.data)
     detector, dynamics, _ = build_networks(ckpt.tensors, skel_cfg, dyn_cfg)
-    record = provenance(checkpoint, ckpt, options, opts)
+    stamp = provenance.stamp()  # taken when the work starts, as every results writer does
+    record = import_record(checkpoint, ckpt, options, opts)
     record["keypoint_statistics"] = str(example) if example else f"{dyn_cfg.data} test split"
     with tqdm(total=2, desc="import-release", leave=False, disable=not progress) as bar:
         bar.set_postfix_str("keypoint statistics")
@@ -977,7 +951,7 @@ def import_release(
             runs.extract_run_skeleton(tmp / "skel")
             _save_run(tmp / "dyn", dyn_cfg, dynamics, dyn.StepSettings.of(dyn_cfg).optimizer)
             for folder in ("skel", "dyn"):
-                atomic.write_json(tmp / folder / PROVENANCE_FILE, record)
+                provenance.write_json(tmp / folder / PROVENANCE_FILE, record, stamp)
             if target.exists():
                 shutil.rmtree(target)
             tmp.rename(target)

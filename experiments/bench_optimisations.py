@@ -1,16 +1,17 @@
 """Each optimisation in the model against its plain formulation, forward + backward, one process.
 
-(a) decoder input conv once per crop, (b) sliced CPU 3D convolution vs XLA's, (c) FeatureNet stem
-convolving the coordinate channels once, (d) separable gaussian maps, (e) grain prefetch, (f) the
-stem and first pool in 2x2x2 blocks on the G/2 grid, (g) each convolution after a trilinear
-upsampling evaluated on the coarse grid.
+(a) decoder input conv once per crop, (b) sliced CPU 3D convolution vs XLA's, (c) the CoordConv
+stem convolving the coordinate channels once, (d) separable gaussian maps, (e) grain prefetch,
+(f) the stem in 2x2x2 blocks on the G/2 grid, then the first pool, (g) each convolution after a
+trilinear upsampling evaluated on the coarse grid.
 
-The fast form of every case is the model's own code (`VoxelDecoder`, `Conv3D`,
-`FeatureNet.stem_conv`, `FeatureNet.stem_and_pool`, `ConvNormAct.after_upsampling`,
-`keypoints.gaussian_maps`, the grain pipeline); the plain forms are the
-tests' (`tests/plain_forms.py`), where `tests/test_plain_forms.py` checks that both compute the
-same function. Each row also reports their relative output and gradient differences at the
-timed shapes.
+The fast form of every case is the model's own code (`VoxelDecoder`, `Conv3D` and its kernels in
+`nmjax.models.conv_kernels`, the stem and first pool of `FeatureNet`, an upsampling
+`ConvNormAct`, `keypoints.gaussian_maps`, the grain pipeline), its layers built with the form
+each case measures (`conv_kernels.Evaluation`); the plain forms are the tests'
+(`tests/plain_forms.py`), where `tests/test_plain_forms.py` checks that both compute the same
+function. Each row also reports their relative output and gradient differences at the timed
+shapes.
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_optimisations.py --preset cpu \
         --out experiments/results/bench_optimisations_cpu.json
@@ -36,7 +37,8 @@ from nmjax import keypoints as kp_lib
 from nmjax import provenance
 from nmjax.bench import environment, print_and_save
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
-from nmjax.models import blocks
+from nmjax.models import blocks, conv_kernels
+from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import VoxelDecoder
 
 PLAIN_FORMS = Path(__file__).resolve().parents[1] / "tests" / "plain_forms.py"
@@ -90,6 +92,17 @@ def module_case(
     )
 
 
+def stem(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
+    """The CoordConv stem's convolution (with its bias) of `net`: (B, G, G, G) -> (B, G, G, G,
+    C/4)."""
+    return net.stem.conv(voxels[..., None])
+
+
+def stem_pool(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
+    """The stem (conv5 + GroupNorm + LeakyReLU) and the first pool of `net`."""
+    return net.pool1(net.stem(voxels[..., None]))
+
+
 def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None = None) -> list:
     """The cases (a)-(d), (f), (g) on the shapes of `skel_preset(data, preset)`; `batch`
     overrides B*T."""
@@ -109,7 +122,10 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     decoder = VoxelDecoder(2 * k + c + 3, c, m.heatmap_stride, rngs=nnx.Rngs(0))
     maps, context = normal(b, t, g, g, g, k), normal(b, g, g, g, c + k + 3)
     shape = f"B={b} T={t} g={g} K={k} C={c}"
-    on_cpu = jax.default_backend() == "cpu"  # (b), (f), (g) are the CPU path; off CPU: plain
+    # (b), (f), (g) are the CPU forms: measured in them whatever the backend, marked as not used
+    # where "auto" takes XLA's native convolution.
+    cpu_forms_used = conv_kernels.resolve("auto", None, (big,) * 3, 3, jnp.float32) != "native"
+    cpu_form = Evaluation(conv_kernels.CPU_CONV_FORM)
     cases = [
         module_case(
             "(a, g) whole decoder: input conv once per crop, upsampled convs coarse",
@@ -136,9 +152,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
         ("decoder first at G", big, c2, c4, 3),
         ("feature res1", big // 2, c4, c2, 3),
     ):
-        conv = blocks.Conv3D(ci, co, ks, rngs=nnx.Rngs(0))
-        # The form the code takes on CPU, whatever the backend this runs on.
-        blocks.set_conv_form(conv, blocks.CPU_CONV_FORM)
+        conv = blocks.Conv3D(ci, co, ks, evaluation=cpu_form, rngs=nnx.Rngs(0))
         cases.append(
             module_case(
                 f"(b) sliced 3D conv: {label}",
@@ -147,46 +161,54 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 plain.conv3d,
                 blocks.Conv3D.__call__,
                 normal(bt, n, n, n, ci),
-                applies=on_cpu,
+                applies=cpu_forms_used,
             )
         )
-    net = blocks.FeatureNet(c, m.hourglass_channels, big, m.heatmap_stride, rngs=nnx.Rngs(0))
     voxels = jnp.asarray(rng.random((bt, big, big, big)) > 0.8, jnp.float32)
-    cases.append(
-        module_case(
-            "(c) stem coordinates convolved once",
-            f"({bt},{big},{big},{big}) k5 ->{c4}",
-            net,
-            plain.stem_conv,
-            blocks.FeatureNet.stem_conv,
-            voxels,
-        )
+    stem_shape = f"({bt},{big},{big},{big}) k5 ->{c4}"
+    # (c) alone: the occupancy by XLA's convolution in both forms, only the coordinates differ.
+    net = blocks.FeatureNet(
+        c,
+        m.hourglass_channels,
+        big,
+        m.heatmap_stride,
+        evaluation=Evaluation("native"),
+        rngs=nnx.Rngs(0),
     )
     cases.append(
         module_case(
-            "(f) stem and first pool in 2x2x2 blocks",
-            f"({bt},{big},{big},{big}) k5 ->{c4}, pool",
+            "(c) stem coordinates convolved once", stem_shape, net, plain.stem_conv, stem, voxels
+        )
+    )
+    net = blocks.FeatureNet(
+        c, m.hourglass_channels, big, m.heatmap_stride, evaluation=cpu_form, rngs=nnx.Rngs(0)
+    )
+    cases.append(
+        module_case(
+            "(f) stem in 2x2x2 blocks, first pool",
+            f"{stem_shape}, pool",
             net,
             plain.stem_and_pool,
-            blocks.FeatureNet.stem_and_pool,
+            stem_pool,
             voxels,
-            applies=on_cpu,
+            applies=cpu_forms_used,
         )
     )
-    stages = [("decoder last upsampling", decoder.up2.layers[0], big // 2, c2)]
-    if decoder.upsample_first:
-        stages.insert(0, ("decoder first upsampling", decoder.up1.layers[0], g, c))
+    # The coarse convs in their CPU form.
+    coarse = VoxelDecoder(2 * k + c + 3, c, m.heatmap_stride, evaluation=cpu_form, rngs=nnx.Rngs(0))
+    stages = [("decoder last upsampling", coarse.up2.layers[0], big // 2, c2)]
+    if coarse.upsample_first:
+        stages.insert(0, ("decoder first upsampling", coarse.up1.layers[0], g, c))
     for label, block, n, ci in stages:
-        blocks.set_conv_form(block, blocks.CPU_CONV_FORM)  # the coarse conv's CPU form
         cases.append(
             module_case(
                 f"(g) conv after upsampling, coarse: {label}",
                 f"({bt},{n},{n},{n},{ci}) -> x2 -> {block.conv.kernel.shape[-1]} k3",
                 block,
                 plain.conv_after_upsampling,
-                blocks.ConvNormAct.after_upsampling,
+                blocks.ConvNormAct.__call__,
                 normal(bt, n, n, n, ci),
-                applies=on_cpu,
+                applies=cpu_forms_used,
             )
         )
     keypoints = jnp.concatenate(

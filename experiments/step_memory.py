@@ -5,11 +5,11 @@
 
 For each 3D-convolution form, the compiled step's temporary / argument / output bytes at the
 preset's shapes (B, T and anything else through --set), e.g. the paper's B=3, T=10, G=64, C=128,
-K=28, whose step needs more memory than a development machine has. `--conv` picks how
-`blocks.conv3d_same` evaluates stride-1 convolutions on CPU:
+K=28, whose step needs more memory than a development machine has. `--conv` sets model.conv_form,
+how `conv_kernels.conv3d_same` evaluates stride-1 convolutions:
 
-- auto: the code's choice (`blocks.conv_form`: "winograd" on CPU, stacked taps where it does not
-  apply);
+- auto: the code's choice (`conv_kernels.resolve`: on CPU "winograd", stacked taps where it does
+  not apply);
 - per_tap: one 2D convolution per depth tap (k shifted inputs, k kernel gradients);
 - stacked: the k depth taps stacked on the channel axis, one 2D convolution;
 - winograd: F(4x4x4, 3x3x3) for every float32 3x3x3 kernel, stacked taps for the others;
@@ -23,6 +23,7 @@ the numbers).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import jax
@@ -32,25 +33,26 @@ from flax import nnx
 from nmjax import provenance
 from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
-from nmjax.models import blocks
+from nmjax.models import conv_kernels
 from nmjax.models.detector import KeypointDetector
 from nmjax.train import common, parallel, skel
 
-FORMS = blocks.CONV_FORMS
+FORMS = conv_kernels.CONV_FORMS
 METRICS = {
     "temp_bytes": "memory_analysis() temporary bytes of the compiled phase-1 train step "
     "(activations kept for the backward pass and scratch), compiled, never run",
     "argument_bytes, output_bytes": "memory_analysis() bytes of its arguments and outputs",
     "compile_s": "seconds to lower and compile the step",
+    "flops": "XLA's operation count of the compiled step (cost_analysis), independent of load",
 }
 
 
 def step_memory(cfg, form: str) -> dict:
     """Compile time and memory_analysis() bytes of the phase-1 train step of `cfg`, every
-    stride-1 convolution in `form` (`blocks.conv3d_same`)."""
+    stride-1 convolution in `form` (model.conv_form)."""
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, conv_form=form))
     skel.check_config(cfg)
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed))
-    blocks.set_conv_form(model, form)  # a static attribute: it lives in the graphdef
     settings, mesh = skel.StepSettings.of(cfg), parallel.data_mesh()
     graphdef, state = common.init_state(model, settings.optimizer)
     g = cfg.model.grid

@@ -13,7 +13,8 @@ import jax.numpy as jnp
 from flax import nnx
 
 from nmjax.keypoints import coord_grid
-from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet, upsample_trilinear
+from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet
+from nmjax.models.conv_kernels import upsample_trilinear
 from nmjax.models.detector import VoxelDecoder
 
 
@@ -30,7 +31,7 @@ def conv3d(conv: Conv3D, x: jax.Array) -> jax.Array:
 def stem_conv(net: FeatureNet, voxels: jax.Array) -> jax.Array:
     """CoordConv as printed: [occupancy, x, y, z] concatenated to every sample, then one 3D conv.
 
-    voxels (B, G, G, G) -> (B, G, G, G, C/4), as `net.stem_conv`.
+    voxels (B, G, G, G) -> (B, G, G, G, C/4), as `net.stem.conv(voxels[..., None])`.
     """
     coords = jnp.broadcast_to(coord_grid(voxels.shape[1]), (*voxels.shape, 3))
     return conv3d(net.stem.conv, jnp.concatenate([voxels[..., None], coords], axis=-1))
@@ -63,8 +64,8 @@ def stem_and_pool(net: FeatureNet, voxels: jax.Array) -> jax.Array:
 
 
 def conv_after_upsampling(block: ConvNormAct, x: jax.Array) -> jax.Array:
-    """The trilinear 2x upsampling, then the block on the upsampled grid, as
-    `block.after_upsampling(x)`: x (B, X, Y, Z, Ci) -> (B, 2X, 2Y, 2Z, Co)."""
+    """The trilinear 2x upsampling, then the block's conv, GroupNorm and LeakyReLU on the
+    upsampled grid, as an upsampling `block(x)`: x (B, X, Y, Z, Ci) -> (B, 2X, 2Y, 2Z, Co)."""
     return nnx.leaky_relu(block.norm(conv3d(block.conv, upsample_trilinear(x))), LEAK)
 
 

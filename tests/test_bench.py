@@ -16,7 +16,8 @@ from nmjax import bench, losses
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.bench import parse_args
 from nmjax.config import skel_preset
-from nmjax.models.blocks import Conv3D, set_compute_dtype
+from nmjax.models.blocks import Conv3D
+from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import KeypointDetector, check_detector_config
 
 ROW_KEYS = {
@@ -72,6 +73,7 @@ def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
         assert all(mem[k] >= 0 for k in bench.MEMORY_KEYS) and mem["argument_bytes"] > 0
         assert mem.get("peak_bytes_in_use", mem.get("peak_rss_bytes", 0)) > 0
     assert (skel_row["phase"], skel_row["compute_dtype"], skel_row["B"]) == ("skel", "bfloat16", 2)
+    assert skel_row["conv_form"] == "auto"  # model.conv_form, recorded with the timing
     assert skel_row["load_s_per_step"] > 0
     assert (dyn_row["phase"], dyn_row["B"], dyn_row["load_s_per_step"]) == ("dyn", 2, 0.0)
     table = capsys.readouterr().out
@@ -137,14 +139,14 @@ def test_conv3d_computes_in_bfloat16_and_returns_float32():
     conv = Conv3D(3, 4, 3, rngs=nnx.Rngs(0))
     x = jnp.asarray(np.random.default_rng(0).normal(size=(2, 6, 6, 6, 3)), jnp.float32)
     ref = conv(x)
-    set_compute_dtype(conv, "bfloat16")
+    conv = Conv3D(3, 4, 3, evaluation=Evaluation("auto", "bfloat16"), rngs=nnx.Rngs(0))
     out = conv(x)
     assert out.dtype == jnp.float32 and conv.kernel[...].dtype == jnp.float32
     assert "bf16" in str(jax.make_jaxpr(conv)(x))
     assert not np.array_equal(out, ref)
     np.testing.assert_allclose(out, ref, atol=0.05 * float(jnp.max(jnp.abs(ref))))
     with pytest.raises(ValueError, match="model.compute_dtype"):
-        set_compute_dtype(conv, "float16")
+        Evaluation("auto", "float16")
 
 
 def test_bfloat16_detector_close_to_float32_with_float32_params_and_losses():

@@ -2,10 +2,11 @@
 
 The real modules (`VoxelDecoder`, `FeatureNet`, `Conv3D`, `keypoints.gaussian_maps`) compute the
 same function as the straightforward forms, in value and in the gradient with respect to the
-parameters and every input, at tiny shapes: a change that breaks an optimisation in the model
-shows here. The whole modules are compared, so the pieces the optimisation benchmark times
-(`VoxelDecoder.input_features`, `FeatureNet.stem_conv`, `FeatureNet.stem_and_pool`,
-`ConvNormAct.after_upsampling`) are checked inside them, and the full-grid rewrites on their own.
+parameters and every input, at tiny shapes: a change that breaks an optimisation in the model or
+its kernels (`nmjax.models.conv_kernels`) shows here. The whole modules are compared, so the
+pieces the optimisation benchmark times (`VoxelDecoder.input_features`, the CoordConv stem, the
+stem and first pool, the convolutions after an upsampling) are checked inside them, and the
+full-grid rewrites on their own, in every CPU form whatever the backend.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ import pytest
 from flax import nnx
 
 from nmjax import keypoints as kp_lib
-from nmjax.models import blocks
+from nmjax.models import blocks, conv_kernels
+from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import VoxelDecoder
 
 RNG = np.random.default_rng(0)
@@ -81,32 +83,37 @@ def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", blocks.CPU_FORMS)
+def stem_and_pool(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
+    """The first two layers of `net(voxels)`: the CoordConv stem, then the first pool."""
+    return net.pool1(net.stem(voxels[..., None]))
+
+
+@pytest.mark.parametrize("form", conv_kernels.CPU_FORMS)
 def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
-    net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(5))
-    blocks.set_conv_form(net, form)  # a 2D form: the blocked path, whatever the backend
+    # A 2D form: the blocked path, whatever the backend.
+    net = blocks.FeatureNet(8, (4, 4), 8, 4, evaluation=Evaluation(form), rngs=nnx.Rngs(5))
     net.stem.conv.bias[...] = jnp.array([0.3, -0.2])  # a bias shows up in the blocks' tiling
     voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
-    fast, params = on_params(blocks.FeatureNet.stem_and_pool, net)
+    fast, params = on_params(stem_and_pool, net)
     plain, _ = on_params(plain_forms.stem_and_pool, net)
     assert_same_function(fast, plain, params, voxels)
 
 
-@pytest.mark.parametrize("form", blocks.CPU_FORMS)
+@pytest.mark.parametrize("form", conv_kernels.CPU_FORMS)
 @pytest.mark.parametrize("shape", [(2, 3, 2, 4, 3), (1, 1, 1, 1, 2)])
 def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(form, shape):
-    block = blocks.ConvNormAct(shape[-1], 4, 3, rngs=nnx.Rngs(6))
-    blocks.set_conv_form(block, form)
+    block = blocks.ConvNormAct(
+        shape[-1], 4, 3, upsample=True, evaluation=Evaluation(form), rngs=nnx.Rngs(6)
+    )
     block.conv.bias[...] = jnp.array([0.5, -1.0, 2.0, 0.1])
-    fast, params = on_params(blocks.ConvNormAct.after_upsampling, block)
+    fast, params = on_params(blocks.ConvNormAct.__call__, block)
     plain, _ = on_params(plain_forms.conv_after_upsampling, block)
     assert_same_function(fast, plain, params, normal(*shape))
 
 
-@pytest.mark.parametrize("form", blocks.CPU_FORMS)
+@pytest.mark.parametrize("form", conv_kernels.CPU_FORMS)
 def test_conv3d_in_2d_convolutions_equals_xla_3d_convolution(form):
-    conv = blocks.Conv3D(2, 3, 3, rngs=nnx.Rngs(3))
-    blocks.set_conv_form(conv, form)
+    conv = blocks.Conv3D(2, 3, 3, evaluation=Evaluation(form), rngs=nnx.Rngs(3))
     conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
     fast, params = on_params(blocks.Conv3D.__call__, conv)
     plain, _ = on_params(plain_forms.conv3d, conv)
@@ -167,10 +174,11 @@ def test_group_norm_against_numpy():
         jnp.asarray(scale, jnp.float32),
         jnp.asarray(bias, jnp.float32),
         3,
+        1e-6,
     )
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError, match="4 groups do not divide 6 channels"):
-        blocks.group_norm(jnp.asarray(x, jnp.float32), scale, bias, 4)
+        blocks.group_norm(jnp.asarray(x, jnp.float32), scale, bias, 4, 1e-6)
     with pytest.raises(ValueError, match="no mask"):
         blocks.GroupNorm(6, num_groups=3, rngs=nnx.Rngs(0))(jnp.asarray(x), mask=x > 0)
 
@@ -199,7 +207,7 @@ def test_group_norm_gradient_against_float64_over_many_cells():
         g.reshape(-1, 4).sum(0),
     )
     f32 = [jnp.asarray(a, jnp.float32) for a in (x, scale, bias, g)]
-    grads = jax.jit(lambda *a: jax.vjp(lambda *p: blocks.group_norm(*p, 2), *a[:3])[1](a[3]))
+    grads = jax.jit(lambda *a: jax.vjp(lambda *p: blocks.group_norm(*p, 2, 1e-6), *a[:3])[1](a[3]))
     for got, want in zip(grads(*f32), expected, strict=True):
         err = np.linalg.norm(np.asarray(got, np.float64) - want) / np.linalg.norm(want)
         assert err < 1e-5

@@ -23,7 +23,9 @@ several rows each row is measured in a fresh process (`--same-process` to opt ou
 `--out` opens with the provenance stamp (`nmjax.provenance`: commit, CPU model, GPU, versions and
 `METRICS`, the definitions of the columns).
 
-The optimisations in the model, each timed against its plain formulation, are
+The convolution forms are compared through the configuration (`--set skel:model.conv_form=native`
+against the default "auto"; the row records the field); the optimisations in the kernels
+(`nmjax.models.conv_kernels`), each timed against its plain formulation, are
 experiments/bench_optimisations.py's.
 """
 
@@ -192,6 +194,7 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
         "C": m.channels,
         "K": m.num_keypoints,
         "compute_dtype": m.compute_dtype,
+        "conv_form": m.conv_form,
     }
     note = (
         f"grain pipeline (prefetch={cfg.data.prefetch}, workers={cfg.data.worker_count}); "

@@ -165,6 +165,11 @@ class DetectorConfig:
     # Precision of the 3D convolutions ("float32" | "bfloat16": inputs and kernels cast, results
     # back to float32); parameters, GroupNorm, heatmaps, keypoints and losses stay float32.
     compute_dtype: str = "float32"
+    # How the 3D convolutions are evaluated (`models.conv_kernels.resolve`): "auto" takes XLA's
+    # native convolution on GPU/TPU and the CPU forms on CPU; "native", "per_tap", "stacked" or
+    # "winograd" that form on every backend. Every form computes the same function; Winograd's
+    # rounds differently from the direct sums (`conv_kernels.winograd_conv3d_valid`).
+    conv_form: str = "auto"
 
 
 @dataclass(frozen=True)
@@ -256,7 +261,6 @@ class DynTrainConfig:
 
 
 DYN_INPUTS = ("crop", "sequence")
-
 
 
 def check_batch_split(

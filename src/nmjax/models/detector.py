@@ -16,16 +16,15 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax.config import DetectorConfig
 from nmjax.models.blocks import (
+    DEFAULT_EVALUATION,
     INIT_STD,
     LEAK,
     Conv3D,
     ConvNormAct,
     FeatureNet,
-    check_compute_dtype,
     check_heatmap_stride,
-    in_compute_dtype,
-    set_compute_dtype,
 )
+from nmjax.models.conv_kernels import Evaluation, in_compute_dtype
 
 
 def check_detector_config(cfg: DetectorConfig) -> None:
@@ -51,28 +50,39 @@ def check_detector_config(cfg: DetectorConfig) -> None:
         raise ValueError(
             f"model.keypoint_temperature must be positive, got {cfg.keypoint_temperature}"
         )
-    check_compute_dtype(cfg.compute_dtype)
+    Evaluation(cfg.conv_form, cfg.compute_dtype)  # refuses an unknown form or dtype
 
 
 class VoxelDecoder(nnx.Module):
     """f_dec of Fig. 9: [g_t, c_1, g_1, coords] at g^3 -> raw occupancy logits at G^3.
 
-    Two conv stages (C -> C/2 -> C/4); each is preceded by a trilinear 2x upsampling when
-    G / g = 4, only the second one when G / g = 2.
+    Two stages (C -> C/2 -> C/4) of two conv3-GN-LeakyReLU blocks; the first block of a stage
+    upsamples its input 2x (trilinear) before its convolution: in both stages when G / g = 4, in
+    the second only when G / g = 2.
     """
 
-    def __init__(self, in_ch: int, channels: int, stride: int = 4, *, rngs: nnx.Rngs):
+    def __init__(
+        self,
+        in_ch: int,
+        channels: int,
+        stride: int = 4,
+        *,
+        evaluation: Evaluation = DEFAULT_EVALUATION,
+        rngs: nnx.Rngs,
+    ):
         check_heatmap_stride(stride)
         c2, c4 = max(1, channels // 2), max(1, channels // 4)
         self.upsample_first = stride == 4
-        self.inp = Conv3D(in_ch, channels, 1, rngs=rngs)
+        kw = {"evaluation": evaluation, "rngs": rngs}
+        self.inp = Conv3D(in_ch, channels, 1, **kw)
         self.up1 = nnx.Sequential(
-            ConvNormAct(channels, c2, 3, rngs=rngs), ConvNormAct(c2, c2, 3, rngs=rngs)
+            ConvNormAct(channels, c2, 3, upsample=self.upsample_first, **kw),
+            ConvNormAct(c2, c2, 3, **kw),
         )
         self.up2 = nnx.Sequential(
-            ConvNormAct(c2, c4, 3, rngs=rngs), ConvNormAct(c4, c4, 3, rngs=rngs)
+            ConvNormAct(c2, c4, 3, upsample=True, **kw), ConvNormAct(c4, c4, 3, **kw)
         )
-        self.out = Conv3D(c4, 1, 1, rngs=rngs)
+        self.out = Conv3D(c4, 1, 1, **kw)
 
     def input_features(self, maps: jax.Array, context: jax.Array) -> jax.Array:
         """The input 1x1x1 conv + LeakyReLU on [g_t, context] of every frame.
@@ -89,7 +99,7 @@ class VoxelDecoder(nnx.Module):
         """
         k = maps.shape[-1]
         w = self.inp.kernel[...][0, 0, 0]  # (K + C + K + 3, C), rows in input-channel order
-        maps, context, w = in_compute_dtype(self.inp.compute_dtype, maps, context, w)
+        maps, context, w = in_compute_dtype(self.inp.evaluation.dtype, maps, context, w)
         shared = (context @ w[k:]).astype(jnp.float32) + self.inp.bias[...]  # (B, g, g, g, C)
         return nnx.leaky_relu((maps @ w[:k]).astype(jnp.float32) + shared[:, None], LEAK)
 
@@ -97,11 +107,7 @@ class VoxelDecoder(nnx.Module):
         """Raw logits (B, T, G, G, G) of every frame; the arguments are `input_features`'."""
         b, t = maps.shape[:2]
         x = self.input_features(maps, context)
-        x = x.reshape(b * t, *x.shape[2:])
-        first, second = self.up1.layers
-        x = second(first.after_upsampling(x) if self.upsample_first else first(x))
-        first, second = self.up2.layers
-        x = second(first.after_upsampling(x))
+        x = self.up2(self.up1(x.reshape(b * t, *x.shape[2:])))
         raw = self.out(x)[..., 0]
         return raw.reshape(b, t, *raw.shape[1:])
 
@@ -126,10 +132,11 @@ class KeypointDetector(nnx.Module):
         k, c = cfg.num_keypoints, cfg.channels
         hg = tuple(cfg.hourglass_channels)
         stride = cfg.heatmap_stride
-        self.features = FeatureNet(c, hg, cfg.grid, stride, rngs=rngs)
-        self.st_features = FeatureNet(2 * c, hg, cfg.grid, stride, rngs=rngs)
-        self.heat = Conv3D(c, k, 1, rngs=rngs)
-        self.st_heat = Conv3D(2 * c, k, 1, rngs=rngs)
+        kw = {"evaluation": Evaluation(cfg.conv_form, cfg.compute_dtype), "rngs": rngs}
+        self.features = FeatureNet(c, hg, cfg.grid, stride, **kw)
+        self.st_features = FeatureNet(2 * c, hg, cfg.grid, stride, **kw)
+        self.heat = Conv3D(c, k, 1, **kw)
+        self.st_heat = Conv3D(2 * c, k, 1, **kw)
         # A 1x1x1 conv over the 2 stacked heatmaps; weights N(0, INIT_STD^2), bias 0 as released.
         self.fuse = nnx.Linear(
             2,
@@ -138,9 +145,8 @@ class KeypointDetector(nnx.Module):
             bias_init=nnx.initializers.zeros,
             rngs=rngs,
         )
-        self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, rngs=rngs)
+        self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, **kw)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
-        set_compute_dtype(self, cfg.compute_dtype)
 
     def affinity(self) -> jax.Array:
         """(N, K, K) row-softmaxed affinity with zero diagonal (Eq. 12)."""

@@ -11,7 +11,8 @@ same joint or joints one bone apart in the body's true tree (`meta.json` parents
 run and method: plausible edges over all K - 1 edges, over the edges of the pruned tree (kept
 nodes, mean alpha >= 0.2, re-attached to their nearest kept ancestor), the parents that differ
 between the methods, and the median extraction time (with K = 28 random affinities as well).
-Writes experiments/results/alg1_methods.{md,json}.
+Writes experiments/results/alg1_methods.{md,json}, stamped with the commit, machine and metric
+definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -25,13 +26,21 @@ from pathlib import Path
 import numpy as np
 from scipy.sparse import csgraph
 
-from nmjax import atomic
+from nmjax import provenance
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import AFFINITY_FILE, STATS_FILE, Detector
 from nmjax.skeleton import METHODS, extract_skeleton, prune
 
 RESULTS = Path(__file__).parent / "results"
+METRICS = {
+    "plausible_all": "share of the tree's K - 1 edges whose two keypoints' labels (the "
+    "ground-truth joint each is most often nearest to over the test crops) are the same joint "
+    "or one bone apart",
+    "plausible_pruned": "the same over the edges between kept nodes (mean alpha >= 0.2)",
+    "parents_differ": "keypoints whose parent differs between the two methods",
+    "ms": "median wall time of one extract_skeleton call on this machine",
+}
 
 
 def joint_labels(detector: Detector, max_crops: int) -> np.ndarray:
@@ -106,6 +115,7 @@ def main() -> int:
     parser.add_argument("--runs", nargs="+", required=True, type=Path)
     parser.add_argument("--max-crops", type=int, default=8)
     args = parser.parse_args()
+    stamp = provenance.stamp(METRICS)
     rows = [evaluate_run(run, args.max_crops) for run in args.runs]
     rng = np.random.default_rng(0)
     random28 = {
@@ -113,8 +123,10 @@ def main() -> int:
         for m in METHODS
     }
     command = "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv)
-    atomic.write_json(
-        RESULTS / "alg1_methods.json", {"command": command, "runs": rows, "random28_ms": random28}
+    provenance.write_json(
+        RESULTS / "alg1_methods.json",
+        {"command": command, "runs": rows, "random28_ms": random28},
+        stamp,
     )
     lines = [
         "# Algorithm 1 against the filtered variant on learned affinities",
@@ -145,7 +157,7 @@ def main() -> int:
         + ", ".join(f"{m} {v:.3f} ms" for m, v in random28.items()),
         "",
     ]
-    atomic.write_text(RESULTS / "alg1_methods.md", "\n".join(lines))
+    provenance.write_markdown(RESULTS / "alg1_methods.md", "\n".join(lines), stamp)
     print("\n".join(lines))
     return 0
 

@@ -2,7 +2,8 @@
 
 Shapes: G=64, g=16, K=28, B=3, T=10, N=2 (Table 3, HanCo K). Prints a markdown table; also the
 compiled memory footprint of volume_fitting forward + gradient. `--memory-only` runs just that
-forward + gradient (for `/usr/bin/time -v` max RSS).
+forward + gradient (for `/usr/bin/time -v` max RSS). The table is followed by the commit,
+machine and column definitions (`nmjax.provenance`).
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/bench_losses.py
     JAX_PLATFORMS=cpu /usr/bin/time -v .venv/bin/python experiments/bench_losses.py --memory-only
@@ -18,10 +19,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nmjax import losses
+from nmjax import losses, provenance
 from nmjax.config import LossWeights
 
 G, GH, K, B, T, N = 64, 16, 28, 3, 10, 2
+METRICS = {
+    "jit (us/call)": "median microseconds of a warm jitted call within --budget seconds",
+    "NumPy (us/call)": "the same for the plain NumPy formulation in this script",
+    "max rel. diff": "max |jit - NumPy| over the output / max |NumPy|",
+}
 SEP_SIGMA = 0.02
 
 
@@ -162,6 +168,7 @@ def main() -> None:
     parser.add_argument("--memory-only", action="store_true")
     parser.add_argument("--budget", type=float, default=1.0, help="seconds of timing per entry")
     args = parser.parse_args()
+    stamp = provenance.stamp(METRICS)
     inputs = make_inputs(memory_only=args.memory_only)
     dev = {k: jnp.asarray(v) for k, v in inputs.items()}
     if args.memory_only:
@@ -258,6 +265,8 @@ def main() -> None:
     print(f"| skeleton_loss fwd+grad (all outputs) | 23 | {total_us:,.0f} | - | - | - |")
     print()
     print(memory_report(dev))
+    print()
+    print(provenance.markdown(stamp))
 
 
 if __name__ == "__main__":

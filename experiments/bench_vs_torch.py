@@ -52,15 +52,18 @@ or one (B*T, G^3, K) distance matrix, next to 3D convolutions over B*T frames of
   matrix of squared distances in one batched call instead of nmjax's per-frame `lax.map` and
   scan, then the exact squared distance to it (so the gradient is the same);
 - `weights.vol_target="joints"` (ground-truth joint supervision) is not implemented: the twin
-  refuses that configuration;
-- GroupNorm's epsilon is flax's 1e-6 rather than torch's default 1e-5 (so that the outputs match
-  nmjax's; no effect on the cost).
+  refuses that configuration.
 
-The optimizer is the same as nmjax's phase-1 step: global-norm clipping at `clip_norm`
-(`torch.nn.utils.clip_grad_norm_`), then Adam at `learning_rate` (betas and epsilon are torch's
-defaults, the same as optax's). The learning-rate milestones are never reached in a benchmark.
-nmjax initialises its convolutions LeCun-normal, the twin keeps torch's defaults (the cost does
-not depend on the values); `fuse` and the affinity parameters start as nmjax's.
+The network is the released one, as nmjax's is (DESIGN section 6): LeakyReLU of slope 0.01,
+residual blocks that return branch + skip without an activation and put a GroupNorm after a
+projection skip, a residual block before every upsampling of the hourglass, heads ending in a
+LeakyReLU and only the fusion in softplus, GroupNorm epsilon 1e-5 (torch's default).
+
+The optimizer is the same as nmjax's phase-1 step: global-norm clipping at `clip_norm` when it
+is set (`torch.nn.utils.clip_grad_norm_`), then Adam at `learning_rate` (betas and epsilon are
+torch's defaults, the same as optax's). The learning-rate milestones and the epoch restarts
+are never reached in a benchmark. The twin keeps torch's default initialisation (the cost does
+not depend on the values); the affinity parameters start as nmjax's.
 
 torch is an optional dependency (`pip install -e '.[bench-torch]'`, CPU wheel 2.13.0); without it
 the script exits with status 2 unless `--only jax`.
@@ -74,11 +77,9 @@ import math
 import os
 import platform
 import statistics
-import subprocess
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 try:
@@ -88,14 +89,13 @@ try:
 except ImportError:  # optional: the twin needs it, `--only jax` does not
     torch = F = nn = None
 
-from nmjax import bench
+from nmjax import bench, provenance
 from nmjax.config import PRESETS, SkelTrainConfig, apply_overrides, skel_preset
-from nmjax.models.blocks import LEAK, hourglass_levels, num_groups
+from nmjax.models.blocks import GN_EPS, LEAK, hourglass_levels, num_groups
 
 DATA = "synth-arm"
 INSTALL_HINT = "pip install -e '.[bench-torch]'"
 FILL = 0.05  # fraction of occupied cells in the twin's random batches
-GN_EPS = 1e-6  # flax.nnx.GroupNorm's default epsilon
 BCE_EPS = 1e-7  # losses.BCE_EPS
 KP_EPS = 1e-6  # keypoints._EPS
 COS_EPS = 1e-6  # losses.COS_EPS
@@ -110,6 +110,12 @@ SHAPES: dict[str, tuple[str, tuple[str, ...]]] = {
     "paper": ("default", ("model.num_keypoints=28", "data.batch_size=1", "data.frames=10")),
 }
 DEFAULT_SHAPES = ("cpu", "paper-channels")
+METRICS = {
+    "median_s": "per side, the median of the timed steps' seconds; jax: the compiled phase-1 "
+    "step from the placed batch until its outputs are ready (nmjax.bench.bench_skel); torch: "
+    "the twin's forward, Eq. 23, backward and optimizer step on random occupancy batches",
+    "ratio": "jax median_s / torch median_s (below 1: nmjax faster)",
+}
 
 _Module = nn.Module if nn is not None else object
 
@@ -124,7 +130,7 @@ def coord_channels(n: int, device: Any = None) -> Any:
 
 
 class ConvNormAct(_Module):
-    """Conv3d (k, stride s, 'same' padding) -> GroupNorm -> LeakyReLU(0.2)."""
+    """Conv3d (k, stride s, 'same' padding) -> GroupNorm -> LeakyReLU(0.01)."""
 
     def __init__(self, in_ch: int, out_ch: int, kernel: int = 3, stride: int = 1):
         super().__init__()
@@ -137,19 +143,32 @@ class ConvNormAct(_Module):
         return F.leaky_relu(self.norm(self.conv(x)), LEAK)
 
 
+class SkipProjection(_Module):
+    """1x1x1 conv + GN: the skip of a residual block that changes width."""
+
+    def __init__(self, in_ch: int, out_ch: int):
+        super().__init__()
+        self.conv = nn.Conv3d(in_ch, out_ch, 1)
+        self.norm = nn.GroupNorm(num_groups(out_ch), out_ch, eps=GN_EPS)
+
+    def forward(self, x):
+        return self.norm(self.conv(x))
+
+
 class ResBlock(_Module):
-    """conv3 + GN + LReLU, conv3 + GN, plus the input (1x1x1 conv when widths differ), LReLU."""
+    """conv3 + GN + LReLU, conv3 + GN, plus the input (projected when widths differ); no
+    activation after the sum."""
 
     def __init__(self, in_ch: int, out_ch: int):
         super().__init__()
         self.conv1 = ConvNormAct(in_ch, out_ch, 3)
         self.conv2 = nn.Conv3d(out_ch, out_ch, 3, padding=1)
         self.norm2 = nn.GroupNorm(num_groups(out_ch), out_ch, eps=GN_EPS)
-        self.skip = nn.Conv3d(in_ch, out_ch, 1) if in_ch != out_ch else None
+        self.skip = SkipProjection(in_ch, out_ch) if in_ch != out_ch else None
 
     def forward(self, x):
         y = self.norm2(self.conv2(self.conv1(x)))
-        return F.leaky_relu(y + (x if self.skip is None else self.skip(x)), LEAK)
+        return y + (x if self.skip is None else self.skip(x))
 
 
 class Pool(_Module):
@@ -188,7 +207,8 @@ class Down(_Module):
 
 
 class Hourglass(_Module):
-    """Pool + residual levels down, a residual skip per level, transposed-conv levels up."""
+    """Pool + residual levels down, a residual skip per level; up: residual block, transposed
+    conv, + skip at every level."""
 
     def __init__(self, channels: int, widths: Sequence[int], size: int):
         super().__init__()
@@ -196,7 +216,7 @@ class Hourglass(_Module):
         w = (channels, *widths[:levels])
         self.down = nn.ModuleList([Down(w[i], w[i + 1]) for i in range(levels)])
         self.skips = nn.ModuleList([ResBlock(c, c) for c in w[:levels]])
-        self.bottom = ResBlock(w[levels], w[levels])
+        self.up_res = nn.ModuleList([ResBlock(w[i + 1], w[i + 1]) for i in reversed(range(levels))])
         self.up = nn.ModuleList([Upsample(w[i + 1], w[i]) for i in reversed(range(levels))])
 
     def forward(self, x):
@@ -204,9 +224,8 @@ class Hourglass(_Module):
         for down, skip in zip(self.down, self.skips, strict=True):
             skips.append(skip(x))
             x = down(x)
-        x = self.bottom(x)
-        for up, skip in zip(self.up, reversed(skips), strict=True):
-            x = up(x) + skip
+        for res, up, skip in zip(self.up_res, self.up, reversed(skips), strict=True):
+            x = up(res(x)) + skip
         return x
 
 
@@ -304,10 +323,6 @@ class TwinDetector(_Module):
         self.heat = nn.Conv3d(c, k, 1)
         self.st_heat = nn.Conv3d(2 * c, k, 1)
         self.fuse = nn.Conv3d(2, 1, 1)  # over the two stacked heatmaps, shared by the K maps
-        w_frame, w_st, bias = cfg.fuse_init
-        with torch.no_grad():
-            self.fuse.weight.copy_(torch.tensor([w_frame, w_st]).view(1, 2, 1, 1, 1))
-            self.fuse.bias.fill_(bias)
         self.decoder = VoxelDecoder(2 * k + c + 3, c, s)
         self.affinity_params = nn.Parameter(torch.ones(cfg.num_affinity, k, k - 1))
 
@@ -318,8 +333,8 @@ class TwinDetector(_Module):
         k = self.cfg.num_keypoints
         feats = self.features(voxels.reshape(b * t, gg, gg, gg))  # (B*T, C, g, g, g)
         g = feats.shape[-1]
-        heat = F.softplus(self.heat(feats)).reshape(b, t, k, g, g, g)
-        st = F.softplus(self.st_heat(self.st_features(voxels.mean(dim=1))))  # (B, K, g, g, g)
+        heat = F.leaky_relu(self.heat(feats), LEAK).reshape(b, t, k, g, g, g)
+        st = F.leaky_relu(self.st_heat(self.st_features(voxels.mean(dim=1))), LEAK)  # (B,K,g^3)
         stacked = torch.stack([heat, st[:, None].expand_as(heat)], dim=3)  # (B, T, K, 2, g^3)
         fused = self.fuse(stacked.reshape(b * t * k, 2, g, g, g))
         heatmaps = F.softplus(fused).reshape(b, t, k, g, g, g)
@@ -631,22 +646,9 @@ def _version(module: str) -> str | None:
         return None
 
 
-def _git_commit() -> str | None:
-    try:
-        done = subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        )
-    except (OSError, subprocess.CalledProcessError):
-        return None
-    return done.stdout.strip()
-
-
 def environment(args: argparse.Namespace) -> dict[str, Any]:
-    """CPU count, load average at the start, versions and the thread settings."""
+    """CPU count, load average at the start, versions and the thread settings (the commit is in
+    the results file's provenance stamp)."""
     env = {
         "time_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
         "cpu_count": os.cpu_count(),
@@ -654,7 +656,6 @@ def environment(args: argparse.Namespace) -> dict[str, Any]:
         "load_avg_5min": round(os.getloadavg()[1], 2),
         "machine": platform.machine(),
         "python": platform.python_version(),
-        "nmjax_commit": _git_commit(),
         "torch_threads": args.threads,
         "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS"),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS"),
@@ -710,7 +711,9 @@ def main(argv: Sequence[str]) -> int:
         return 2
     if torch is not None:
         torch.set_num_threads(args.threads)
+    stamp = provenance.stamp(METRICS)
     env = environment(args)
+    print(f"commit={provenance.describe_commit(stamp)}")
     print(" ".join(f"{k}={v}" for k, v in env.items()))
     rows = []
     for name, preset, cfg in todo:
@@ -739,7 +742,7 @@ def main(argv: Sequence[str]) -> int:
         both = row["jax"] is not None and row["torch"] is not None
         row["ratio"] = row["jax"]["median_s"] / row["torch"]["median_s"] if both else None
         rows.append(row)
-    bench.print_and_save(format_table(rows), args.out, env, args, rows)
+    bench.print_and_save(format_table(rows), args.out, env, args, rows, stamp)
     return 0
 
 

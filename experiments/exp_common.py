@@ -10,6 +10,9 @@ Phase-1 variants of one synthetic dataset, trained at the `cpu` preset for `--st
 
 Phase-2 runs ("nm" and the positional "vrnn") train on the `ours` phase-1 run into
 `runs/exp/dyn-<data>-<model>`.
+
+Every results file the scripts write carries the stamp of `nmjax.provenance` (commit, machine,
+metric definitions), taken when the script starts.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import sys
 import time
 from pathlib import Path
 
-from nmjax import atomic, runs
+from nmjax import atomic, provenance, runs
 from nmjax.config import SkelTrainConfig, dyn_preset, skel_preset
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
@@ -134,7 +137,7 @@ def training_note(runs: dict[str, Path]) -> str:
     return "\n".join(lines)
 
 
-def provenance(runs: dict[str, Path]) -> str:
+def training_header(runs: dict[str, Path]) -> str:
     """Markdown saying which command made a results file and how far its runs were trained."""
     return f"Command: `{command_line()}`\n\nTraining:\n{training_note(runs)}\n"
 
@@ -152,8 +155,10 @@ def skeleton_section(rows: dict[str, dict]) -> str:
     )
 
 
-def bar_plot(path: Path, groups: list[str], series: dict[str, list], ylabel: str, title: str):
-    """Grouped bars; series values are (mean, ci or None)."""
+def bar_plot(
+    path: Path, groups: list[str], series: dict[str, list], ylabel: str, title: str, stamp: dict
+):
+    """Grouped bars; series values are (mean, ci or None); the PNG carries `stamp`."""
     import matplotlib.pyplot as plt
     import numpy as np
 
@@ -171,3 +176,4 @@ def bar_plot(path: Path, groups: list[str], series: dict[str, list], ylabel: str
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
     save_figure(fig, path)
+    provenance.stamp_png(path, stamp)

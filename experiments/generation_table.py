@@ -8,7 +8,8 @@ Trains the phase-2 "nm" and "vrnn" runs on --skel-run unless they are given (wha
 train-dyn --skel-run SKEL --model M --preset cpu --steps N --run DIR` does, into
 `runs/exp/gen-<data>-<model>`; a finished run of the same configuration there is reused), then
 runs `nmjax evaluate --run NM --vrnn-run VRNN --generation` (written into NM/eval/) and writes
-experiments/results/generation_<data>.md and generation_<data>.png.
+experiments/results/generation_<data>.md and generation_<data>.png, stamped with the commit,
+machine and metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -22,11 +23,12 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import atomic, viz
+from nmjax import atomic, provenance, viz
 from nmjax.cli import main as nmjax_main
 from nmjax.config import DynTrainConfig, dyn_preset
 from nmjax.evaluate import (
     GEN_HORIZONS,
+    GENERATION_METRICS,
     REFERENCE,
     evaluate_generation_run,
     fmt,
@@ -161,7 +163,7 @@ def main() -> None:
     parser.add_argument("--clips", type=int, default=4, help="conditioning clips per sequence")
     parser.add_argument("--results", type=Path, default=ec.RESULTS, help="folder of the .md")
     args = parser.parse_args()
-
+    stamp = provenance.stamp(GENERATION_METRICS)
     nm = args.nm_run or phase2_run(
         args.data, "nm", args.skel_run, args.dyn_steps, args.preset, args.runs
     )
@@ -182,6 +184,7 @@ def main() -> None:
     viz.plot_generation(
         args.results / plot, results, reference=REFERENCE, title=f"{args.data}: generation"
     )
+    provenance.stamp_png(args.results / plot, stamp)
     _, body = generation_markdown(results).split("\n", 1)  # without its title
     text = "\n".join(
         [
@@ -207,7 +210,7 @@ def main() -> None:
         ]
     )
     path = args.results / f"generation_{args.data}.md"
-    atomic.write_text(path, text)
+    provenance.write_markdown(path, text, stamp)
     print(f"wrote {path}")
 
 

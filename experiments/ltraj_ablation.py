@@ -7,7 +7,8 @@ Trains (or reuses) the phase-1 variants ours and no_traj (exp_common), draws eac
 (skeleton.json) on its example validation frame, and lists the parent arrays and SC-scores, with
 the skeleton against the ground truth beside them (joint distance, joint coverage, edge
 precision, bone recall, distinct nodes; `nmjax.metrics`).
-Writes experiments/results/ltraj_ablation.md and ltraj_ablation.png.
+Writes experiments/results/ltraj_ablation.md and ltraj_ablation.png, stamped with the commit,
+machine and metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -17,10 +18,15 @@ import argparse
 import exp_common as ec
 import numpy as np
 
-from nmjax import atomic
+from nmjax import provenance
 from nmjax.data.voxelize import voxel_points
-from nmjax.evaluate import evaluate_phase1
+from nmjax.evaluate import PHASE1_METRICS, evaluate_phase1
 from nmjax.runs import STATS_FILE, Detector, pruned_skeleton
+
+# SC and the skeleton measures beside it; the figure draws each run's pruned tree.
+METRICS = {
+    k: v for k, v in PHASE1_METRICS.items() if k not in ("tracking", "bone_length_variation")
+}
 
 
 def draw(ax, run, title: str) -> None:
@@ -49,6 +55,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=2000)
     parser.add_argument("--max-crops", type=int, default=4)
     args = parser.parse_args()
+    stamp = provenance.stamp(METRICS)
 
     import matplotlib.pyplot as plt
 
@@ -71,10 +78,11 @@ def main() -> None:
             ax = fig.add_subplot(len(args.data), 2, 2 * i + j + 1, projection="3d")
             draw(ax, run, f"{data}: {label}")
     save_figure(fig, ec.RESULTS / "ltraj_ablation.png")
-    atomic.write_text(
+    provenance.stamp_png(ec.RESULTS / "ltraj_ablation.png", stamp)
+    provenance.write_markdown(
         ec.RESULTS / "ltraj_ablation.md",
         "# Appendix C.2: ablation of L_traj (skeletons side by side)\n\n"
-        f"{ec.provenance(runs)}\n"
+        f"{ec.training_header(runs)}\n"
         "![skeletons](ltraj_ablation.png)\n\n"
         "| data | model | SC-score | kept keypoints | parents after pruning |\n"
         "|---|---|---|---|---|\n"
@@ -82,6 +90,7 @@ def main() -> None:
         + "\n\nPaper (Fig. 13, AIST++ and HanCo): keypoint positions almost identical, bones of "
         "the complete loss follow the rigid parts better than without L_traj.\n"
         + ec.skeleton_section(evaluated),
+        stamp,
     )
 
 

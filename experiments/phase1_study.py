@@ -15,9 +15,10 @@ with `nmjax.evaluate.evaluate_phase1` on the test split of the body's standard s
 (`data/<data>` or `$NMJAX_DATA/<data>`, 30 sequences, seed 0) even when the variant trained on
 another set. The row (command, change, steps, wall minutes, SC in both definitions, tracking CD,
 bone-length variation, kept nodes, the skeleton against the ground truth: joint distance,
-joint coverage, edge precision, bone recall, distinct nodes; the commit) replaces any earlier
-row of the same (data, variant, seed, budget) in `experiments/results/phase1_study.json`, and
-`phase1_study.md` is rewritten from it.
+joint coverage, edge precision, bone recall, distinct nodes; the provenance stamp of
+`nmjax.provenance`, taken before the run trained: commit, machine, metric definitions) replaces
+any earlier row of the same (data, variant, seed, budget) in
+`experiments/results/phase1_study.json`, and `phase1_study.md` is rewritten from it.
 
 Variants that train on a bigger synthetic set generate it first (`nmjax.data.synthetic`) with
 another seed than the standard set, so no test motion is among their training sequences.
@@ -31,7 +32,6 @@ import fcntl
 import json
 import os
 import shlex
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -39,15 +39,30 @@ from pathlib import Path
 import exp_common
 import numpy as np
 
-from nmjax import atomic, runs
+from nmjax import atomic, provenance, runs
 from nmjax.config import apply_overrides, skel_preset, with_steps
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
-from nmjax.evaluate import SKELETON_TRUTH_COLUMNS, evaluate_phase1
+from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1
 from nmjax.runs import Detector
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "study"
+# The measures of a row (the evaluation's, named as the row names them, and the study's own).
+METRICS = {
+    "sc, sc_fixed_nodes": f"{PHASE1_METRICS['sc']}; fixed nodes: "
+    f"{PHASE1_METRICS['sc_fixed_nodes']}",
+    "tracking_cd": PHASE1_METRICS["tracking"],
+    "bone_length_variation": PHASE1_METRICS["bone_length_variation"],
+    **{k: v for k, v in PHASE1_METRICS.items() if k.startswith(("joint_", "edge_", "bone_r"))},
+    "distinct_nodes": PHASE1_METRICS["distinct_nodes"],
+    "val_sc_last": "the last validation SC-score the trainer logged",
+    "fuse_w_st_final": "the spatio-temporal heatmap's fusion weight in the evaluated detector",
+    "heat_far_mass_last": "the last validation's median share of a heatmap's mass beyond 1.5 "
+    "cells of its peak",
+    "wall_minutes, load_average": "wall time of training and evaluation; the 1-minute load "
+    "average when the row was written",
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -231,6 +246,7 @@ def run_variant(
 ) -> dict:
     from nmjax.train import skel
 
+    stamp = provenance.stamp(METRICS)  # the code that trains, before the run can change it
     cfg = variant_config(data, name, minutes, seed, steps)
     budget = f"{steps} steps" if steps is not None else f"{minutes:g} min"
     run = RUNS / f"{data}-{name}-s{seed}-{budget.replace(' ', '')}"
@@ -242,7 +258,7 @@ def run_variant(
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)
-    atomic.write_json(run / "study_eval.json", results)
+    provenance.write_json(run / "study_eval.json", results, stamp)
     skeleton = json.loads((run / "skeleton.json").read_text())
     return {
         "data": data,
@@ -253,7 +269,6 @@ def run_variant(
         "overrides": list(VARIANTS[name].overrides),
         "train_root": cfg.data.root,
         "budget": budget,
-        "commit": commit(),
         "steps": int(summary["step"]),
         "wall_minutes": wall,
         "load_average": os.getloadavg()[0],
@@ -269,18 +284,15 @@ def run_variant(
         **run_extras(run, detector),
         "num_keypoints": len(skeleton["parents"]),
         "run": str(run),
+        "provenance": stamp,
     }
 
 
-def commit() -> str | None:
-    """The checkout's commit: the step's speed, so the steps a budget buys, depends on it."""
-    try:
-        out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True
-        )
-    except OSError:
-        return None
-    return out.stdout.strip() or None
+def row_commit(row: dict) -> str:
+    """The commit a row was trained at (rows before the provenance stamp record a short hash)."""
+    if "provenance" in row:
+        return provenance.describe_commit(row["provenance"])
+    return row.get("commit") or "n/a"
 
 
 def row_key(row: dict) -> tuple:
@@ -304,6 +316,8 @@ def skeleton_cells(row: dict) -> str:
 
 
 def write_report(rows: list[dict]) -> None:
+    """phase1_study.json (every row with its own provenance) and the table phase1_study.md."""
+    stamp = provenance.stamp(METRICS)
     atomic.write_json(RESULTS / "phase1_study.json", rows)
     lines = [
         "# Phase-1 study at CPU scale",
@@ -350,10 +364,10 @@ def write_report(rows: list[dict]) -> None:
     lines += ["", "## Commands", ""]
     lines += [
         f"- {r['data']} {r['variant']} s{r['seed']} ({r['budget']}, "
-        f"commit {r.get('commit') or 'n/a'}): `{r['command']}`"
+        f"commit {row_commit(r)}): `{r['command']}`"
         for r in rows
     ]
-    atomic.write_text(RESULTS / "phase1_study.md", "\n".join(lines) + "\n")
+    provenance.write_markdown(RESULTS / "phase1_study.md", "\n".join(lines), stamp)
 
 
 def main() -> int:

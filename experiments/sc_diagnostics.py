@@ -12,7 +12,8 @@ On the test crops that `nmjax evaluate` uses (up to 8 per sequence, normalised p
   perturbed by isotropic gaussian noise of each given std, i.e. how much keypoint jitter Eq. 21
   tolerates on this body.
 
-Prints a report; writes nothing.
+Prints a report, headed by the commit, machine and definitions (`nmjax.provenance`); writes
+nothing.
 """
 
 from __future__ import annotations
@@ -22,12 +23,17 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import metrics
+from nmjax import metrics, provenance
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import Detector
 
 NOISE_STDS = (0.0, 0.02, 0.04, 0.06, 0.08)
+METRICS = {
+    "SC": "Eq. 21 as published (nmjax.metrics.SemanticConsistency) on the test crops",
+    "p_j(k)": "share of the test frames in which node k is joint j's nearest node",
+    "noise oracle": "SC of the ground-truth joints plus isotropic gaussian noise of std s",
+}
 
 
 def test_keypoints(detector: Detector, max_crops: int) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +98,7 @@ def main() -> None:
     parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
     parser.add_argument("--oracle-only", action="store_true", help="skip the per-joint tables")
     args = parser.parse_args()
+    print(provenance.markdown(provenance.stamp(METRICS)))
     report(args.run, args.max_crops, args.oracle_only)
 
 

@@ -5,7 +5,8 @@ generated, its ground-truth joints play the keypoints, and the affinity is compu
 alone (no use of the true tree): keypoints that stay at a short, constant distance over time
 are affine, A_ij proportional to exp(-(mean_t d_ij + 4 std_t d_ij) / tau), row-softmaxed like the
 learned one. The script writes a C10-style run folder, runs `extract_run_skeleton`, prints the
-extraction time and how many extracted edges are true bones, and copies the figure.
+extraction time and how many extracted edges are true bones, and copies the figure (stamped
+with the commit and machine, `nmjax.provenance`).
 
     .venv/bin/python experiments/skeleton_synthetic.py --data synth-hand
 """
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic
+from nmjax import atomic, provenance
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import normalize_sequence, voxelize
 from nmjax.runs import AFFINITY_FILE, FIGURES_DIR, STATS_FILE, extract_run_skeleton
@@ -43,6 +44,9 @@ def main() -> None:
     parser.add_argument("--grid", type=int, default=32)
     parser.add_argument("--out", default="experiments/figures")
     args = parser.parse_args()
+    stamp = provenance.stamp(
+        {"true bones": "extracted edges whose two joints are a bone of the generator's tree"}
+    )
     with tempfile.TemporaryDirectory() as tmp:
         root = generate(args.data, Path(tmp) / args.data, num_sequences=2, frames=40, points=4000)
         meta = json.loads((root / "meta.json").read_text())
@@ -78,6 +82,7 @@ def main() -> None:
         out = Path(args.out) / f"skeleton_{args.data}.png"
         out.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(run / FIGURES_DIR / "skeleton.png", out)
+        provenance.stamp_png(out, stamp)
         print(f"figure: {out}")
 
 

@@ -15,7 +15,9 @@ how `conv_kernels.conv3d_same` evaluates stride-1 convolutions:
 - winograd: F(4x4x4, 3x3x3) for every float32 3x3x3 kernel, stacked taps for the others;
 - native: XLA's 3D convolution everywhere (what GPU and TPU backends always use).
 
-Writes nothing; prints one line per form (add --out FILE.json for the numbers).
+Also XLA's operation count of the compiled step (`cost_analysis()["flops"]`), which does not
+depend on the machine's load. Writes nothing; prints one line per form (add --out FILE.json for
+the numbers).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import jax
 import jax.numpy as jnp
 from flax import nnx
 
-from nmjax import atomic
+from nmjax import provenance
 from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import conv_kernels
@@ -36,6 +38,13 @@ from nmjax.models.detector import KeypointDetector
 from nmjax.train import common, parallel, skel
 
 FORMS = conv_kernels.CONV_FORMS
+METRICS = {
+    "temp_bytes": "memory_analysis() temporary bytes of the compiled phase-1 train step "
+    "(activations kept for the backward pass and scratch), compiled, never run",
+    "argument_bytes, output_bytes": "memory_analysis() bytes of its arguments and outputs",
+    "compile_s": "seconds to lower and compile the step",
+    "flops": "XLA's operation count of the compiled step (cost_analysis), independent of load",
+}
 
 
 def step_memory(cfg, form: str) -> dict:
@@ -55,6 +64,8 @@ def step_memory(cfg, form: str) -> dict:
     compiled = lowered.compile()
     seconds = time.perf_counter() - tic
     analysis = compiled.memory_analysis()
+    cost = compiled.cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost  # one dict per device in older jax
     return {
         "conv": form,
         "B": cfg.data.batch_size,
@@ -67,6 +78,9 @@ def step_memory(cfg, form: str) -> dict:
         "temp_bytes": int(analysis.temp_size_in_bytes),
         "argument_bytes": int(analysis.argument_size_in_bytes),
         "output_bytes": int(analysis.output_size_in_bytes),
+        # XLA's operation count of the compiled step: independent of the machine's load, so two
+        # networks' costs compare on a busy machine too.
+        "flops": float(cost.get("flops", float("nan"))),
     }
 
 
@@ -79,6 +93,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
     args = parser.parse_args()
     cfg = apply_overrides(skel_preset(args.data, args.preset), args.overrides)
+    stamp = provenance.stamp(METRICS)
     env = environment()
     print(" ".join(f"{k}={v}" for k, v in env.items()))
     rows = []
@@ -89,11 +104,14 @@ def main() -> None:
             f"conv={form:<8} B={row['B']} T={row['T']} G={row['G']} C={row['C']} K={row['K']} "
             f"temp {row['temp_bytes']:,} bytes ({row['temp_bytes'] / 2**30:.2f} GiB), "
             f"arguments {row['argument_bytes'] / 2**30:.2f} GiB, outputs "
-            f"{row['output_bytes'] / 2**30:.2f} GiB, compiled in {row['compile_s']:.0f} s",
+            f"{row['output_bytes'] / 2**30:.2f} GiB, {row['flops'] / 1e9:.1f} GFLOP, "
+            f"compiled in {row['compile_s']:.0f} s",
             flush=True,
         )
     if args.out is not None:
-        atomic.write_json(args.out, {"environment": env, "args": vars(args), "rows": rows})
+        provenance.write_json(
+            args.out, {"environment": env, "args": vars(args), "rows": rows}, stamp
+        )
         print(f"wrote {args.out}")
 
 

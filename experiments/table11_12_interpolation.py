@@ -5,7 +5,9 @@
 
 Per dataset: the phase-1 run "ours" (exp_common), a phase-2 "nm" run and a positional "vrnn" run
 on it, then `nmjax.evaluate.evaluate_run` (SR = 3 ... 30, 95% CI over test sequences). Writes
-experiments/results/table11_12_interpolation.md and table11_12_<data>.png.
+experiments/results/table11_12_interpolation.md and table11_12_<data>.png (with --keypoints-only
+table11_12_keypoints.md), stamped with the commit, machine and metric definitions
+(`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -15,8 +17,9 @@ from pathlib import Path
 
 import exp_common as ec
 
-from nmjax import atomic, viz
+from nmjax import provenance, runs, viz
 from nmjax.evaluate import (
+    INTERPOLATION_METRICS,
     SAMPLING_RATES,
     evaluate_interpolation,
     evaluate_run,
@@ -32,17 +35,17 @@ PAPER = (
 
 
 def trained_runs(
-    data: str, args: argparse.Namespace, runs: dict[str, Path]
+    data: str, args: argparse.Namespace, trained: dict[str, Path]
 ) -> tuple[Path, Path, Path]:
     """The phase-1 "ours", phase-2 "nm" and phase-2 "vrnn" runs of `data` (trained if needed).
 
-    Each is also recorded in `runs` under "<data> phase 1" / "<data> nm" / "<data> vrnn" for the
-    training note of the results file.
+    Each is also recorded in `trained` under "<data> phase 1" / "<data> nm" / "<data> vrnn" for
+    the training note of the results file.
     """
     skel = ec.skel_run(data, "ours", args.skel_steps)
     nm = ec.dyn_run(data, "nm", skel, args.dyn_steps)
     vrnn = ec.dyn_run(data, "vrnn", skel, args.dyn_steps)
-    runs.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
+    trained.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
     return skel, nm, vrnn
 
 
@@ -63,10 +66,10 @@ def main() -> None:
     if args.keypoints_only:
         keypoints_only(args)
         return
-
-    sections, runs = [], {}
+    stamp = provenance.stamp({"interpolation": INTERPOLATION_METRICS["interpolation"]})
+    sections, trained = [], {}
     for data in args.data:
-        _, nm, vrnn = trained_runs(data, args, runs)
+        _, nm, vrnn = trained_runs(data, args, trained)
         res = evaluate_run(
             nm,
             vrnn_run=vrnn,
@@ -78,12 +81,14 @@ def main() -> None:
         )
         mcd = res["interpolation"]
         viz.plot_mcd(ec.RESULTS / f"table11_12_{data}.png", mcd, title=f"{data}: M-CD x1e3")
+        provenance.stamp_png(ec.RESULTS / f"table11_12_{data}.png", stamp)
         lines = interpolation_table(mcd, data) + [f"![M-CD](table11_12_{data}.png)", ""]
         sections.append("\n".join(lines))
-    atomic.write_text(
+    provenance.write_markdown(
         ec.RESULTS / "table11_12_interpolation.md",
         "# Tables 11-12: interpolation M-CD x1e3 (Eq. 22; 95% CI over test sequences)\n\n"
-        f"{ec.provenance(runs)}\n" + "\n".join(sections) + f"\n{PAPER}\n",
+        f"{ec.training_header(trained)}\n" + "\n".join(sections) + f"\n{PAPER}\n",
+        stamp,
     )
 
 
@@ -91,9 +96,13 @@ def keypoints_only(args) -> None:
     """The decoder-free check: squared error of the in-between keypoints, every method."""
     from flax import nnx
 
-    sections, runs = [], {}
+    stamp = provenance.stamp(
+        {"interpolation_keypoints": INTERPOLATION_METRICS["interpolation_keypoints"]}
+    )
+    sections, trained = [], {}
     for data in args.data:
-        skel, nm, vrnn = trained_runs(data, args, runs)
+        skel, nm, vrnn = trained_runs(data, args, trained)
+        nm_cfg = runs.phase2_runs(nm, vrnn)[0]  # both trained on the same inputs
         interp = Interpolators(
             nnx.split(runs.restore_dynamics(nm)),
             nnx.split(runs.restore_dynamics(vrnn)),
@@ -103,19 +112,21 @@ def keypoints_only(args) -> None:
         evaluate_interpolation(
             Detector.load(skel),
             interp,
-            runs.load_trajectories(skel, "test"),
+            runs.load_trajectories(skel, "test") if nm_cfg.inputs == "sequence" else None,
             tuple(args.rates),
             max_segments=args.max_segments,
             voxels=False,
             keypoint_errors=errors,
+            frames=nm_cfg.frames,
         )
         sections += [f"## {data}", ""] + interpolation_table(
             errors, "In-between keypoint error (sum over K of squared xyz; 95% CI over sequences)"
         )
-    atomic.write_text(
+    provenance.write_markdown(
         ec.RESULTS / "table11_12_keypoints.md",
         "# Tables 11-12, decoder-free: in-between keypoint error of the interpolations\n\n"
-        f"{ec.provenance(runs)}\n" + "\n".join(sections) + "\n",
+        f"{ec.training_header(trained)}\n" + "\n".join(sections) + "\n",
+        stamp,
     )
 
 

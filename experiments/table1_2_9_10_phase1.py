@@ -13,7 +13,8 @@ evaluates each on the test split with `nmjax.evaluate.evaluate_phase1`:
 Each table also carries, beside SC, the skeleton against the ground truth of its variants (joint
 distance, joint coverage, edge precision, bone recall, distinct nodes; `nmjax.metrics`).
 
-Writes experiments/results/table1_sc.md, table2_tracking.md, table9_10_no_vol.md and a plot each.
+Writes experiments/results/table1_sc.md, table2_tracking.md, table9_10_no_vol.md and a plot each,
+stamped with the commit, machine and metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -22,8 +23,8 @@ import argparse
 
 import exp_common as ec
 
-from nmjax import atomic
-from nmjax.evaluate import evaluate_phase1, fmt
+from nmjax import provenance
+from nmjax.evaluate import PHASE1_METRICS, evaluate_phase1, fmt
 from nmjax.runs import Detector
 
 PAPER = {
@@ -34,6 +35,8 @@ PAPER = {
     "CD x1e4 ours 3.42 / 1.97 vs w/o L_vol 16.7 / 2.30.",
 }
 COUNTERPART = {"synth-human": "AIST++", "synth-hand": "HanCo", "synth-arm": "Panda"}
+# The tables report SC, the tracking Chamfer and the skeleton measures, not the bone variation.
+METRICS = {k: v for k, v in PHASE1_METRICS.items() if k != "bone_length_variation"}
 
 
 def main() -> None:
@@ -43,7 +46,7 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=["ours", "gt", "no_vol"])
     parser.add_argument("--max-crops", type=int, default=4, help="test crops per sequence")
     args = parser.parse_args()
-
+    stamp = provenance.stamp(METRICS)
     results, runs = {}, {}
     for data in args.data:
         for variant in args.variants:
@@ -52,7 +55,7 @@ def main() -> None:
             results[data, variant] = evaluate_phase1(Detector.load(run), args.max_crops)
             print(data, variant, results[data, variant].get("sc", {}).get("score"), flush=True)
 
-    head = ec.provenance(runs)
+    head = ec.training_header(runs)
     cols = "| model | " + " | ".join(f"{d} ({COUNTERPART.get(d, d)})" for d in args.data) + " |"
     rule = "|---|" + "---|" * len(args.data)
 
@@ -94,7 +97,7 @@ def main() -> None:
         return out
 
     if "ours" in args.variants:
-        atomic.write_text(
+        provenance.write_markdown(
             ec.RESULTS / "table1_sc.md",
             "# Table 1: semantic consistency (SC-score, Eq. 21)\n\n"
             + head
@@ -103,6 +106,7 @@ def main() -> None:
             + f"\n{cols}\n{rule}\n{sc_row('ours', 'Ours')}\n"
             + f"{sc_row('ours', 'Ours, fixed nodes', 'sc_fixed_nodes')}\n\n{PAPER['table1']}\n"
             + skeleton(("ours", "Ours")),
+            stamp,
         )
         ec.bar_plot(
             ec.RESULTS / "table1_sc.png",
@@ -110,9 +114,10 @@ def main() -> None:
             {"Ours": series("ours", "sc")},
             "SC-score",
             f"Table 1 at CPU scale ({args.steps} steps)",
+            stamp,
         )
     if {"ours", "gt"} <= set(args.variants):
-        atomic.write_text(
+        provenance.write_markdown(
             ec.RESULTS / "table2_tracking.md",
             "# Table 2: 4D-tracking Chamfer distance x1e4 (95% CI over test sequences)\n\n"
             + head
@@ -120,6 +125,7 @@ def main() -> None:
             + f"{cd_row('gt', 'GT (L_vol -> joint MSE)')}"
             + f"\n\n{PAPER['table2']}\n"
             + skeleton(("ours", "Ours"), ("gt", "GT (L_vol -> joint MSE)")),
+            stamp,
         )
         ec.bar_plot(
             ec.RESULTS / "table2_tracking.png",
@@ -127,9 +133,10 @@ def main() -> None:
             {"Ours": series("ours", "cd"), "GT": series("gt", "cd")},
             "tracking CD x1e4",
             f"Table 2 at CPU scale ({args.steps} steps)",
+            stamp,
         )
     if {"ours", "no_vol"} <= set(args.variants):
-        atomic.write_text(
+        provenance.write_markdown(
             ec.RESULTS / "table9_10_no_vol.md",
             "# Tables 9-10: ablation without L_vol\n\n"
             + head
@@ -138,6 +145,7 @@ def main() -> None:
             + f"{cols}\n{rule}\n{cd_row('ours', 'Ours')}\n{cd_row('no_vol', 'w/o L_vol')}\n\n"
             + f"{PAPER['table9_10']}\n"
             + skeleton(("ours", "Ours"), ("no_vol", "w/o L_vol")),
+            stamp,
         )
         ec.bar_plot(
             ec.RESULTS / "table9_10_no_vol.png",
@@ -145,6 +153,7 @@ def main() -> None:
             {"Ours": series("ours", "cd"), "w/o L_vol": series("no_vol", "cd")},
             "tracking CD x1e4",
             f"Table 10 at CPU scale ({args.steps} steps)",
+            stamp,
         )
 
 

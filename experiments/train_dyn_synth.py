@@ -1,15 +1,18 @@
 """Phase 2 on a synthetic body, with learning curves written to experiments/results/.
 
-Uses a phase-1 run when one is given (--skel-run, contract C10). Without one it builds an *oracle*
-stand-in: the generator's ground-truth joints (normalised per sequence with the point cloud's
-bounding box, alpha = 1) and its true parent tree, written in the C10 layout. The oracle measures
-the dynamics module alone; the result file says which input was used.
+Uses a phase-1 run when one is given (--skel-run, contract C10), with the phase-2 inputs of the
+preset ("crop": its detector on every crop) unless --inputs says otherwise. Without one it builds
+an *oracle* stand-in: the generator's ground-truth joints (normalised per sequence with the point
+cloud's bounding box, alpha = 1) and its true parent tree, written in the C10 layout and read as
+"sequence" inputs (there is no detector). The oracle measures the dynamics module alone; the
+result file says which input was used.
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm
 
 Writes experiments/results/train_dyn_<data>.json (configuration, final validation, steps/s,
 curves) and .png (training loss; validation reconstruction against "repeat the last pose";
-generation against "hold the last observed pose").
+generation against "hold the last observed pose"), both stamped with the commit, machine and
+metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -22,13 +25,22 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic
-from nmjax.config import dyn_preset
+from nmjax import atomic, provenance, runs
+from nmjax.config import DYN_INPUTS, dyn_preset
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
 from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"
+METRICS = {
+    "train/recon": "Eq. 3 reconstruction with the training rule (best of S posterior samples)",
+    "train/last_pose, val/last_pose": "Eq. 3 of predicting x_t by x_{t-1} on the same frames",
+    "val/recon": "posterior reconstruction error of one sample, frames 2..T",
+    "val/recon_best": "the same, best of S samples",
+    "val/gen": "error of the prior rollout after T/4 observed frames on the generated frames",
+    "val/gen_hold": "the same for holding the last observed pose",
+    "train_steps_per_s_median": "median of the logged training steps/s, the first left out",
+}
 
 
 def topological_order(parents: list[int]) -> list[int]:
@@ -105,19 +117,26 @@ def main() -> None:
     parser.add_argument("--models", nargs="+", default=["nm", "vrnn"])
     parser.add_argument("--sequences", type=int, default=200)
     parser.add_argument("--workdir", default="runs/experiments")
+    parser.add_argument(
+        "--inputs", choices=DYN_INPUTS, default=None, help="phase-2 inputs of a --skel-run"
+    )
     args = parser.parse_args()
-
+    stamp = provenance.stamp(METRICS)
     workdir = Path(args.workdir)
+    inputs = args.inputs or dyn_preset(args.data, args.preset).inputs
     if args.skel_run is None:
         skel_run = oracle_run(args.data, workdir / f"oracle-{args.data}", args.sequences, seed=0)
         source = "oracle: ground-truth joints of the synthetic generator (alpha = 1)"
+        inputs = "sequence"  # the oracle has no detector to run on crops
     else:
-        skel_run, source = Path(args.skel_run), f"phase-1 run {args.skel_run}"
-    runs, summary = {}, {}
+        skel_run = Path(args.skel_run)
+        source = f"phase-1 run {args.skel_run}, phase-2 inputs '{inputs}'"
+    curves, summary = {}, {}
     for model in args.models:
         cfg = dyn_preset(args.data, args.preset)
         cfg = dataclasses.replace(
             cfg,
+            inputs=inputs,
             skel_run=str(skel_run),
             model=dataclasses.replace(cfg.model, model=model),
             steps=args.steps,
@@ -132,7 +151,7 @@ def main() -> None:
             shutil.rmtree(run_dir)
         run_dir, _ = runs.train_dynamics(cfg, progress=False)
         records = common.read_metrics(run_dir)
-        runs[model] = records
+        curves[model] = records
         rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]
         final = next(r for r in reversed(records) if "val/recon" in r)
         summary[model] = {
@@ -143,7 +162,7 @@ def main() -> None:
         print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"train_dyn_{args.data}"
-    atomic.write_json(
+    provenance.write_json(
         stem.with_suffix(".json"),
         {
             "data": args.data,
@@ -151,10 +170,12 @@ def main() -> None:
             "sequences": args.sequences if args.skel_run is None else None,
             "preset": args.preset,
             **summary,
-            "curves": runs,
+            "curves": curves,
         },
+        stamp,
     )
-    plot_curves(stem.with_suffix(".png"), runs, f"phase 2 on {args.data} ({source})")
+    plot_curves(stem.with_suffix(".png"), curves, f"phase 2 on {args.data} ({source})")
+    provenance.stamp_png(stem.with_suffix(".png"), stamp)
     print(f"wrote {stem}.json and {stem}.png")
 
 

@@ -6,8 +6,8 @@ Writes experiments/results/train_skel_<data>.json (the run's configuration, the 
 it, wall time, the final validation metrics, the curves and, unless `--no-test`, the run's scores
 on the test split under "test": SC in both definitions, tracking CD x1e4, bone-length variation
 and the skeleton against the ground truth, from `nmjax.evaluate.evaluate_phase1`) and .png (one
-panel per loss term, train and validation, plus the SC-score); `--out DIR` writes them to DIR
-instead.
+panel per loss term, train and validation, plus the SC-score), both stamped with the commit,
+machine and metric definitions (`nmjax.provenance`); `--out DIR` writes them to DIR instead.
 """
 
 from __future__ import annotations
@@ -18,14 +18,19 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from nmjax import atomic
-from nmjax.evaluate import SKELETON_TRUTH_COLUMNS, evaluate_phase1
+from nmjax import provenance
+from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1
 from nmjax.losses import TERMS
 from nmjax.runs import Detector
 from nmjax.train import common
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 RESULTS = Path(__file__).parent / "results"
+METRICS = {
+    "train, val": "{term: [[step, value]]}: the terms of Eq. 23 (weighted as the run trained), "
+    "their total and the validation SC-score, as the trainer logged them (metrics.jsonl)",
+    **{f"test.{key}": text for key, text in PHASE1_METRICS.items()},
+}
 
 
 def curves(records: list[dict[str, float]], prefix: str) -> dict[str, list[list[float]]]:
@@ -88,7 +93,7 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--max-crops", type=int, default=8, help="test crops per sequence")
     parser.add_argument("--no-test", action="store_true", help="skip the test-split scores")
     args = parser.parse_args(argv)
-
+    stamp = provenance.stamp(METRICS)
     config = json.loads((args.run / "config.json").read_text())
     records = common.read_metrics(args.run)
     train, val = curves(records, "train/"), curves(records, "val/")
@@ -107,13 +112,10 @@ def main(argv: list[str] | None = None) -> None:
     if not args.no_test:
         summary["test"] = test_scores(args.run, args.max_crops)
     args.out.mkdir(parents=True, exist_ok=True)
-    atomic.write_json(args.out / f"train_skel_{data}.json", summary)
-    plot(
-        train,
-        val,
-        f"phase 1 on {data} ({summary['steps']} steps)",
-        args.out / f"train_skel_{data}.png",
-    )
+    provenance.write_json(args.out / f"train_skel_{data}.json", summary, stamp)
+    figure = args.out / f"train_skel_{data}.png"
+    plot(train, val, f"phase 1 on {data} ({summary['steps']} steps)", figure)
+    provenance.stamp_png(figure, stamp)
     print({k: round(v, 4) for k, v in final_val.items()})
     if "test" in summary:
         print("test:", {k: round(v, 4) for k, v in summary["test"].items()})

@@ -55,6 +55,8 @@ def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
     argv += ["--set", "skel:data.grid=8", "--set", "skel:model.grid=8"]  # fewer ops to compile
     assert nmjax_main(["bench", *argv, "--out", str(out)]) == 0
     result = json.loads(out.read_text())
+    assert list(result)[0] == "provenance" and result["provenance"]["metrics"] == bench.METRICS
+    assert {"commit", "dirty", "cpu", "date"} <= set(result["provenance"])
     env = result["environment"]
     assert env["jax"] == jax.__version__ and env["cpu_count"] >= 1 and env["device_count"] >= 1
     assert {"devices", "backend", "load_avg_1min"} <= set(env)
@@ -121,7 +123,9 @@ def test_optimisation_benchmark_times_the_model_against_the_plain_forms(tmp_path
     cases = ["a", "b", "c", "d", "f", "g"]
     argv = ["--preset", "tiny", "--only", *cases, "--repeats", "1", "--out", str(out)]
     assert module.main(argv) == 0
-    rows = json.loads(out.read_text())["rows"]
+    result = json.loads(out.read_text())
+    assert result["provenance"]["metrics"] == module.METRICS
+    rows = result["rows"]
     # The whole-decoder row is "(a, g)": both optimisations are inside the decoder.
     expected = ["(a,", "(a)"] + ["(b)"] * 4 + ["(c)", "(f)"] + ["(g)"] * 2 + ["(d)"]
     assert [r["name"][:3] for r in rows] == expected

@@ -18,6 +18,7 @@ from flax import nnx
 
 from nmjax import losses
 from nmjax.config import apply_overrides, skel_preset
+from nmjax.models.blocks import Conv3D
 from nmjax.models.detector import KeypointDetector
 
 
@@ -72,10 +73,19 @@ def test_twin_computes_the_detector_and_its_loss(grid, stride):
     torch = pytest.importorskip("torch")
     script = load_script()
     overrides = [f"model.grid={grid}", f"data.grid={grid}", f"model.heatmap_stride={stride}"]
-    overrides.append("model.fuse_init=0.7,0.4,-1.0")  # both heatmap branches in play
     cfg = apply_overrides(skel_preset("synth-arm", "tiny"), overrides)
     model_cfg = cfg.model
     detector = KeypointDetector(model_cfg, rngs=nnx.Rngs(0))
+    # Weights of unit-ish scale instead of the release's 0.001 / 0.02, so that every layer,
+    # both heatmap branches and the LeakyReLUs' negative sides are in play.
+    for i, (_, m) in enumerate(nnx.iter_modules(detector)):
+        if isinstance(m, Conv3D):
+            shape = m.kernel[...].shape
+            m.kernel[...] = jax.random.normal(jax.random.key(i), shape) / np.sqrt(
+                np.prod(shape[:-1])
+            )
+    detector.fuse.kernel[...] = jnp.asarray([[0.7], [0.4]])
+    detector.fuse.bias[...] = jnp.asarray([-1.0])
     twin = script.TwinDetector(model_cfg)
     n_params = sum(int(p.size) for p in jax.tree.leaves(nnx.state(detector, nnx.Param)))
     assert script.twin_param_count(twin) == n_params == script.nmjax_param_count(model_cfg)
@@ -120,6 +130,7 @@ def test_main_times_both_sides_and_writes_json(arm_root, tmp_path, capsys):
     argv += ["--set", f"data.root={arm_root}", "--set", "data.grid=8", "--set", "model.grid=8"]
     assert script.main([*argv, "--out", str(out)]) == 0
     result = json.loads(out.read_text())
+    assert result["provenance"]["metrics"] == script.METRICS
     env = result["environment"]
     assert env["cpu_count"] >= 1 and env["torch_threads"] == 1 and env["torch"] and env["jax"]
     assert "load_avg_1min" in env

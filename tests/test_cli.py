@@ -28,11 +28,23 @@ BAD_INPUTS = {
         (["--resume", "--run", MISSING], MISSING),
         (["--batch-size", "0"], "--batch-size"),
     ],
-    "generate": [(["--run", MISSING], MISSING), (["--run", MISSING, "--gen", "0"], "--gen")],
+    "import-release": [
+        ([MISSING + ".pth", "--options", MISSING + ".pickle", "--run", "out"], MISSING),
+        ([MISSING + ".pth", "--run", "out"], "--options"),
+    ],
+    "generate": [
+        (["--run", MISSING], MISSING),
+        (["--run", MISSING, "--gen", "0"], "--gen"),
+        (["--run", MISSING, "--source-file", "x.npy", "--source-rate", "0"], "--source-rate"),
+    ],
     "interpolate": [(["--run", MISSING], MISSING), (["--run", MISSING, "--gap", "0"], "--gap")],
     "retarget": [
         (["--run", MISSING, "--target", MISSING + ".obj"], MISSING),
         (["--run", MISSING], "--target"),
+        (
+            ["--run", MISSING, "--target", "t.obj", "--source", "a", "--source-file", "a.npy"],
+            "not both",
+        ),
     ],
     "evaluate": [(["--run", MISSING], MISSING), (["--run", MISSING, "--rates", "x"], "--rates")],
     "bench": [(["--preset", "nope"], "nope"), (["--steps", "0"], "--steps")],

@@ -12,7 +12,7 @@ import pytest
 from flax import nnx
 
 from nmjax.config import skel_preset
-from nmjax.models import blocks
+from nmjax.models import blocks, conv_kernels
 from nmjax.models.detector import KeypointDetector
 
 
@@ -112,7 +112,7 @@ def test_groupnorm_epsilon_is_pytorchs_default(default_detector):
     assert norms and all(n.epsilon == 1e-5 for n in norms)
     # eps matters where the variance is small: (x - mean) / sqrt(var + 1e-5).
     x = jnp.asarray([0.0, 2e-3, -2e-3, 0.0]).reshape(1, 4, 1)  # var 2e-6, below eps
-    out = blocks.group_norm(x, jnp.ones(1), jnp.zeros(1), 1, blocks.GN_EPS)
+    out = conv_kernels.group_norm(x, jnp.ones(1), jnp.zeros(1), 1, blocks.GN_EPS)
     var = np.var(np.asarray(x))
     np.testing.assert_allclose(out[0, 1, 0], 2e-3 / np.sqrt(var + 1e-5), rtol=1e-4)
     assert abs(float(out[0, 1, 0]) - 2e-3 / np.sqrt(var + 1e-6)) > 0.5  # flax's 1e-6 differs

@@ -214,3 +214,131 @@ def test_best_of_s_gradient_equals_differentiating_all_samples():
     for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(expected), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
     assert any(float(jnp.abs(g).sum()) > 0 for g in jax.tree.leaves(got))
+
+
+# --- the release's model (DESIGN section 8): each difference pinned without the release -------
+
+
+def test_mlp_hidden_activation_is_leaky_relu_with_slope_0_01():
+    mlp = dynamics.MLP(1, 2, 1, rngs=nnx.Rngs(0))
+    mlp.hidden.kernel[...] = jnp.array([[1.0, -1.0]])  # units x and -x
+    mlp.hidden.bias[...] = jnp.zeros(2)
+    mlp.out.kernel[...] = jnp.array([[1.0], [1.0]])
+    mlp.out.bias[...] = jnp.zeros(1)
+    # x = 3: units 3 and -3 -> 3 + 0.01 (-3); a ReLU would give 3.
+    np.testing.assert_allclose(mlp(jnp.array([[3.0], [-2.0]])), [[2.97], [1.98]], rtol=1e-6)
+
+
+def pytorch_gru_step(h, x, w_ih, w_hh, b_ih, b_hh):
+    """nn.GRUCell's documented update in NumPy, with PyTorch's (3H, in) weights and two biases."""
+    sigmoid = lambda v: 1.0 / (1.0 + np.exp(-v))  # noqa: E731
+    gi, gh = x @ w_ih.T + b_ih, h @ w_hh.T + b_hh
+    i_r, i_z, i_n = np.split(gi, 3, axis=-1)
+    h_r, h_z, h_n = np.split(gh, 3, axis=-1)
+    r, z = sigmoid(i_r + h_r), sigmoid(i_z + h_z)
+    n = np.tanh(i_n + r * h_n)  # h_n holds b_hn: the hidden bias sits inside the reset product
+    return (1.0 - z) * n + z * h
+
+
+def test_gru_cell_is_pytorchs_with_b_hn_inside_the_reset_product():
+    hidden, inputs = 6, 5
+    cell = dynamics.GRUCell(inputs, hidden, rngs=nnx.Rngs(3))
+    rng = np.random.default_rng(0)
+    h = rng.normal(size=(4, hidden)).astype(np.float32)
+    x = rng.normal(size=(4, inputs)).astype(np.float32)
+    w_ih = np.asarray(cell.input_kernel[...]).T
+    w_hh = np.asarray(cell.hidden_kernel[...]).T
+    # PyTorch's bias_ih / bias_hh: the r and z biases split in any way between the two.
+    b_in = np.asarray(cell.input_bias[...])
+    b_hh = np.concatenate([0.3 * b_in[: 2 * hidden], np.asarray(cell.hidden_bias[...])])
+    b_ih = np.concatenate([0.7 * b_in[: 2 * hidden], b_in[2 * hidden :]])
+    expected = pytorch_gru_step(h, x, w_ih, w_hh, b_ih, b_hh)
+    np.testing.assert_allclose(cell(jnp.asarray(h), jnp.asarray(x)), expected, atol=1e-6)
+
+    # Hand case: z = 0 (h' = n) and r = 0 leave n = tanh(W_in x + b_in), whatever W_hn and b_hn.
+    gates = np.asarray(cell.input_bias[...]).copy()
+    gates[: 2 * hidden] = -200.0  # sigmoid(-200) is 0 in float32
+    cell.input_bias[...] = jnp.asarray(gates)
+    w_in, b_n = w_ih[2 * hidden :], gates[2 * hidden :]
+    np.testing.assert_allclose(
+        cell(jnp.asarray(h), jnp.asarray(x)), np.tanh(x @ w_in.T + b_n), atol=1e-6
+    )
+    # r = 1: b_hn is added to W_hn h inside the tanh.
+    gates[:hidden] = 200.0
+    cell.input_bias[...] = jnp.asarray(gates)
+    cell.hidden_bias[...] = jnp.full((hidden,), 0.5)
+    w_hn = w_hh[2 * hidden :]
+    np.testing.assert_allclose(
+        cell(jnp.asarray(h), jnp.asarray(x)),
+        np.tanh(x @ w_in.T + b_n + h @ w_hn.T + 0.5),
+        atol=1e-6,
+    )
+
+
+def test_gru_cell_runs_under_nnx_scan():
+    cell = dynamics.GRUCell(3, 4, rngs=nnx.Rngs(1))
+    xs = jax.random.normal(jax.random.key(0), (5, 2, 3))  # (T, B, in)
+    h0 = jnp.zeros((2, 4))
+
+    @nnx.scan(in_axes=(None, nnx.Carry, 0), out_axes=(nnx.Carry, 0))
+    def run(cell, h, x):
+        h = cell(h, x)
+        return h, h
+
+    _, hs = run(cell, h0, xs)
+    h, expected = h0, []
+    for x in xs:
+        h = cell(h, x)
+        expected.append(h)
+    np.testing.assert_allclose(hs, np.stack(expected), atol=1e-6)
+
+
+def test_bone_lengths_take_the_lower_middle_value_for_even_frame_counts():
+    x = np.zeros((4, 2, 3), np.float32)  # joint 1 hangs from joint 0 at distances 3, 1, 10, 2
+    x[:, 1, 0] = [3.0, 1.0, 10.0, 2.0]
+    lengths = np.asarray(bone_lengths(jnp.asarray(x), (0, 0)))
+    np.testing.assert_array_equal(lengths, [0.0, 2.0])  # torch.median: 2, jnp.median: 2.5
+    np.testing.assert_array_equal(dynamics.lower_median(jnp.array([4.0, 1.0, 3.0])), 3.0)
+
+
+def chain(k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    return tuple(max(j - 1, 0) for j in range(k)), tuple(range(k))
+
+
+def test_trainable_parameter_count_is_the_releases():
+    """K = 8, D_z 128, D_h 512: the release's dynamics module holds 1,408,979 values, of which 24
+    are the frozen offset directions and 1,024 the GRU's second copies of the r and z biases."""
+    model = Dynamics(DynamicsConfig(), *chain(8), rngs=nnx.Rngs(0))
+    count = sum(x.size for x in jax.tree.leaves(nnx.state(model, nnx.Param)))
+    assert count == 1_408_979 - 24 - 1_024 == 1_407_931
+    assert model.rnn.hidden_bias.shape == (512,)  # b_hn
+    assert sum(x.size for x in jax.tree.leaves(nnx.state(model, Buffer))) == 24
+
+
+def test_initialisation_is_pytorchs_default():
+    model = Dynamics(DynamicsConfig(latent=32, hidden=128, mlp=64), *chain(8), rngs=nnx.Rngs(2))
+    for name in ("posterior", "prior", "global_decoder", "rotation_decoder"):
+        for layer in (getattr(model, name).hidden, getattr(model, name).out):
+            bound = 1.0 / np.sqrt(layer.kernel.shape[0])  # 1/sqrt(fan_in) for weight and bias
+            for values in (np.asarray(layer.kernel[...]), np.asarray(layer.bias[...])):
+                assert np.abs(values).max() <= bound
+            kernel = np.asarray(layer.kernel[...])
+            np.testing.assert_allclose(kernel.std(), bound / np.sqrt(3), rtol=0.1)  # uniform
+    rnn, bound = model.rnn, 1.0 / np.sqrt(128)
+    for values in (rnn.input_kernel[...], rnn.hidden_kernel[...], rnn.hidden_bias[...]):
+        values = np.asarray(values)
+        assert np.abs(values).max() <= bound and values.std() > 0.9 * bound / np.sqrt(3)
+    gates, b_in = np.asarray(rnn.input_bias[...][:256]), np.asarray(rnn.input_bias[...][256:])
+    assert np.abs(b_in).max() <= bound
+    # b_ir + b_hr (and z): the sum of two PyTorch biases, up to 2/sqrt(H), std sqrt(2/3)/sqrt(H).
+    assert np.abs(gates).max() <= 2 * bound and np.abs(gates).max() > bound
+    np.testing.assert_allclose(gates.std(), bound * np.sqrt(2 / 3), rtol=0.15)
+
+
+def test_initial_hidden_state_starts_unit_normal():
+    model = Dynamics(DynamicsConfig(), *chain(8), rngs=nnx.Rngs(0))
+    h0 = np.asarray(model.initial_hidden[...])
+    assert h0.shape == (512,) and 0.8 <= h0.std() <= 1.2 and abs(h0.mean()) < 0.15
+    assert isinstance(model.initial_hidden, nnx.Param)  # learned
+    again = Dynamics(DynamicsConfig(), *chain(8), rngs=nnx.Rngs(0)).initial_hidden[...]
+    np.testing.assert_array_equal(h0, again)  # the run's seed fixes it

@@ -10,7 +10,7 @@ import pytest
 from experiment_scripts import load_experiment
 from tiny_runs import PARENTS, make_runs
 
-from nmjax import evaluate, metrics
+from nmjax import evaluate, metrics, provenance
 from nmjax.data.voxelize import voxelize
 from nmjax.tasks import Interpolators
 
@@ -128,6 +128,9 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
     assert cli.main([*argv, "--max-segments", "1", "--max-crops", "1", "--out", str(out)]) == 0
     results = json.loads((out / "results.json").read_text())
     assert results["vrnn_run"] == str(runs["vrnn"])  # found beside the nm run
+    stamp = results["provenance"]  # the commit, machine and every measure's definition
+    assert {"sc", "tracking", "joint_distance", "interpolation"} <= set(stamp["metrics"])
+    assert provenance.read_png(out / "mcd.png") == stamp
     p1 = results["phase1"]
     assert 0.0 < p1["sc"]["score"] <= 1.0 and 0.0 < p1["sc_fixed_nodes"]["score"] <= 1.0
     assert np.isfinite(p1["tracking"]["mean"])
@@ -150,6 +153,7 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
         "fixed node set",
         "Skeleton against the ground truth",
         "bone recall",
+        "## Provenance",
     ):
         assert row in tables
     assert (out / "mcd.png").stat().st_size > 0
@@ -174,7 +178,9 @@ def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
     path.write_text(json.dumps(stored))
     out = tmp_path / "eval"
     assert cli.main(["evaluate", "--run", str(run), "--max-crops", "1", "--out", str(out)]) == 0
-    p1 = json.loads((out / "results.json").read_text())["phase1"]
+    results = json.loads((out / "results.json").read_text())
+    assert "interpolation" not in results["provenance"]["metrics"]  # phase 1 only
+    p1 = results["phase1"]
     assert p1["skeleton_kept_nodes"] == 3 and p1["bone_length_variation"]["kept_nodes"] == 3
     assert 1 <= p1["distinct_nodes"] <= 3
     for key in SKELETON_KEYS[1:-1]:
@@ -367,7 +373,8 @@ def test_generation_command_writes_its_table_and_plot(runs, tmp_path):
     table = (out / "generation.md").read_text()
     for text in ("| Ours |", "| VRNN |", "| Hold last pose |", "N = 20", "no test sequence has 20"):
         assert text in table
-    assert (out / "generation.png").read_bytes()[:4] == b"\x89PNG"
+    assert "## Provenance" in table and "  - `bone_error`: " in table
+    assert provenance.read_png(out / "generation.png") == results["provenance"]
     assert not (out / "results.json").exists()  # the other tables are not recomputed
     # Real clips from longer sequences (--real-keypoints) measure the set distance at N = 20.
     with np.load(runs["skel"] / "keypoints_test.npz") as npz:
@@ -428,5 +435,7 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
         nan_ok=True,  # one test sequence: no CI
     )
     assert (out / "train_skel_synth-arm.png").read_bytes()[:4] == b"\x89PNG"
+    assert provenance.read_png(out / "train_skel_synth-arm.png") == summary["provenance"]
+    assert summary["provenance"]["metrics"]["test.sc"] == evaluate.PHASE1_METRICS["sc"]
     module.main(["--run", str(run), "--out", str(out), "--no-test"])
     assert "test" not in json.loads((out / "train_skel_synth-arm.json").read_text())

@@ -69,6 +69,7 @@ def test_dry_run_summary_has_every_stage_and_real_results(dry_run):
     assert set(stages) == set(paper_scale.STAGES)
     assert {name: s["status"] for name, s in stages.items()} == dict.fromkeys(stages, "ok")
     assert summary["devices"]["backend"] == "cpu" and summary["devices"]["device_count"] >= 1
+    assert summary["devices"]["provenance"]["commit"] == head  # nmjax.provenance's stamp
 
     rows = {r["label"]: r for r in summary["bench"]["rows"]}
     assert set(rows) == {

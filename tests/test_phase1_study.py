@@ -92,10 +92,14 @@ def test_report_carries_the_skeleton_measures_and_marks_rows_written_before_them
     assert measures["distinct_nodes"] == 7 and measures["skeleton_kept_nodes"] == 9
     assert study.skeleton_measures({})["edge_precision"] is None  # data without joints
     new = {k: v for k, v in old.items() if k not in ("joint_distance", "distinct_nearest")}
-    new = {**new, "variant": "new", **measures}
+    stamp = {"commit": "0123456789abcdef", "dirty": False, "changed": 0}
+    new = {**new, "variant": "new", **measures, "provenance": stamp}
     monkeypatch.setattr(study, "RESULTS", tmp_path)
     study.write_report([old, new])
-    table = (tmp_path / "phase1_study.md").read_text().splitlines()
+    text = (tmp_path / "phase1_study.md").read_text()
+    assert "## Provenance" in text and "commit 0123456789 (clean))" in text
+    assert f"commit {old.get('commit') or 'n/a'})" in text  # a row from before the stamp
+    table = text.splitlines()
     header = next(line for line in table if line.startswith("| body |"))
     old_line = next(
         line for line in table if line.startswith(f"| {old['data']} | {old['variant']}")

@@ -11,6 +11,7 @@ import pytest
 
 from nmjax.config import (
     CPU_EPOCHS,
+    dyn_preset,
     resolve_epochs,
     skel_preset,
     steps_per_epoch,
@@ -136,3 +137,23 @@ def test_no_clipping_by_default_and_clipping_as_an_option():
     assert common.make_optimizer(1.0, clip_norm=0.0).init(big[0]) != tx.init(big[0])
     with pytest.raises(ValueError, match="period"):
         common.restart_every(optax.scale_by_adam(), 0)
+
+
+@pytest.mark.parametrize("data", sorted(RELEASE_EPOCHS))
+def test_phase2_default_is_the_releases_recipe(data):
+    # The release's opt.pickle (AIST++): batch 16, T 20, 150 epochs, no decay, lr 4e-4, KL 0.003.
+    cfg = dyn_preset(data, "default")
+    assert (cfg.batch_size, cfg.frames, cfg.epochs, cfg.kl_weight) == (16, 20, 150, 0.003)
+    assert cfg.learning_rate == 4e-4 and cfg.clip_norm == 0.0 and cfg.optimizer_reset == "epoch"
+    resolved = resolve_epochs(cfg, 1227, cfg.batch_size)
+    assert (resolved.steps_per_epoch, resolved.steps) == (77, 150 * 77)
+    settings = common.OptimizerSettings.of(resolved)
+    assert settings.restart_period == 77 and settings.milestones == ()
+
+
+def test_phase2_trainer_refuses_epochs_it_cannot_count():
+    from nmjax.train import dyn
+
+    cfg = dyn_preset("synth-arm", "default")
+    with pytest.raises(ValueError, match="resolve_epochs"):
+        dyn.train(cfg, ((0,), (0,)), lambda: None)

@@ -21,6 +21,7 @@ from test_train_skel import _cfg as skel_cfg
 
 from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
+from nmjax.config import resolve_epochs
 from nmjax.train import common, skel
 
 TORN = "3.orbax-checkpoint-tmp-1764633600"  # what orbax leaves of a save killed before its rename
@@ -78,7 +79,9 @@ def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
         _refused([*argv, "--set", change], capsys, run, named)
     _refused([*argv, "--data", "synth-hand"], capsys, run, "synth-arm")
     empty = tmp_path / "empty"
-    common.prepare_run_dir(empty, resume=False, config=cfg)
+    # A folder as the trainer makes it before its first checkpoint: the epochs resolved (the
+    # two-sequence set has 1 training sequence, 1 step an epoch at B = 1).
+    common.prepare_run_dir(empty, resume=False, config=resolve_epochs(cfg, 1, 1))
     no_checkpoint = "no complete checkpoint"
     _refused(["train-skel", "--run", str(empty), "--resume"], capsys, empty, no_checkpoint)
 
@@ -104,7 +107,8 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     _refused([*argv, "--set", "model.hidden=8"], capsys, run, "model.hidden")
     _refused([*argv, "--model", "vrnn"], capsys, run, "model.model")
     empty = tmp_path / "empty"
-    common.prepare_run_dir(empty, resume=False, config=cfg)
+    saved = common.load_config(run, type(cfg))  # as the trainer resolved it
+    common.prepare_run_dir(empty, resume=False, config=dataclasses.replace(saved, run=str(empty)))
     no_checkpoint = "no complete checkpoint"
     _refused(["train-dyn", "--run", str(empty), "--resume"], capsys, empty, no_checkpoint)
 
@@ -134,7 +138,16 @@ def test_missing_export_is_an_error_naming_the_command(tmp_path, capsys, fake_ru
         phase1 / "skeleton.json", json.loads((fake_run / "skeleton.json").read_text())
     )
     argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(phase1), "--preset", "tiny"]
-    assert nmjax_main([*argv, "--run", str(tmp_path / "dyn")]) == 2
+    sequence = ["--set", "inputs=sequence"]
+    assert nmjax_main([*argv, *sequence, "--run", str(tmp_path / "dyn")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert f"nmjax export-keypoints --run {phase1}" in line
     assert not (tmp_path / "dyn").exists() and not list(phase1.glob("keypoints_*"))
+    # "crop" inputs (the default) need the detector: its absence names both ways out.
+    assert nmjax_main([*argv, "--run", str(tmp_path / "dyn")]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "no phase-1 detector checkpoint" in line and "inputs=sequence" in line
+    assert not (tmp_path / "dyn").exists()
+    assert nmjax_main([*argv, "--set", "inputs=video", "--run", str(tmp_path / "dyn")]) == 2
+    assert "valid inputs: crop, sequence" in capsys.readouterr().err
+    assert not (tmp_path / "dyn").exists()

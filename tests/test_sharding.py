@@ -26,7 +26,8 @@ ORDER = (0, 1, 2, 3, 4)
 
 
 def _dyn_cfg(batch_size: int = 4):
-    return dataclasses.replace(dyn_preset("synth-arm", "tiny"), batch_size=batch_size)
+    cfg = dyn_preset("synth-arm", "tiny")  # trained on a fake phase-1 run without a detector
+    return dataclasses.replace(cfg, batch_size=batch_size, inputs="sequence")
 
 
 # --- the script (runs with two CPU devices) ----------------------------------------------------

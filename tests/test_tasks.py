@@ -111,7 +111,8 @@ def test_slerp_midpoint_uses_the_geodesic_between_the_inferred_rotations(model):
         - np.asarray(jnp.stack([a, b], 1))[:, :, list(PARENTS), :3],
         axis=-1,
     )
-    offsets = np.asarray(model.directions[...])[None] * np.median(lengths, axis=1)[..., None]
+    lower_median = np.min(lengths, axis=1)  # torch's median of two frames: the lower value
+    offsets = np.asarray(model.directions[...])[None] * lower_median[..., None]
     root = SKELETON.root
     for i in range(2):
         centre = 0.5 * (np.asarray(a)[i, root, :3] + np.asarray(b)[i, root, :3])
@@ -162,6 +163,56 @@ def test_generation_keeps_the_observed_frames_and_draws_independent_samples_per_
     np.testing.assert_allclose(
         lengths(np.asarray(kp[:, 0, -1])), np.asarray(bone_lengths(x, PARENTS)), atol=1e-4
     )
+
+
+def test_generation_callers_infer_the_observed_frames_with_the_configured_samples(monkeypatch):
+    """Every caller of `generate` draws the config's S = 10 posterior samples per observed frame
+    (the release's best-of-10); samples=1 is still there for a caller that asks for it."""
+    from nmjax import evaluate
+    from nmjax.train import dyn
+
+    # Sizes no other test uses, so the compiled callers below are traced (and spied on) afresh.
+    model = Dynamics(
+        DynamicsConfig(latent=3, hidden=7, mlp=5),
+        SKELETON.parents,
+        SKELETON.order,
+        rngs=nnx.Rngs(0),
+    )
+    assert model.samples == 10
+    drawn, generating = [], []
+    posterior_step, generate = Dynamics.posterior_step, Dynamics.generate
+
+    def spy_posterior(self, h, x, lengths, key, samples):
+        if generating:
+            drawn.append(samples)
+        return posterior_step(self, h, x, lengths, key, samples)
+
+    def spy_generate(self, *args, **kwargs):
+        generating.append(True)
+        try:
+            return generate(self, *args, **kwargs)
+        finally:
+            generating.pop()
+
+    monkeypatch.setattr(Dynamics, "posterior_step", spy_posterior)
+    monkeypatch.setattr(Dynamics, "generate", spy_generate)
+    x = jnp.stack([keyframes(8), keyframes(9)], axis=1)  # (B=2, T_cond=2, K, 4)
+    key = jax.random.key(0)
+    callers = {
+        "generate_motion": lambda: tasks.generate_motion(model, x, 3, key, num_samples=2),
+        "interpolate_motion": lambda: tasks.interpolate_motion(model, x, x[:, -1], 3, key, 2),
+        "evaluate.generated_futures": lambda: evaluate.generated_futures(
+            nnx.split(model), np.asarray(x), 3, 2, key
+        ),
+        "dyn.evaluate": lambda: dyn.evaluate(model, jnp.concatenate([x, x], axis=1), x, key),
+    }
+    for name, call in callers.items():
+        drawn.clear()
+        call()
+        assert drawn and set(drawn) == {10}, name
+    drawn.clear()
+    tasks.generate_motion(model, x, 3, key, num_samples=2, posterior_samples=1)
+    assert drawn and set(drawn) == {1}
 
 
 # --- retargeting -----------------------------------------------------------------------------
@@ -330,6 +381,41 @@ def runs(tmp_path_factory):
     return make_runs(tmp_path_factory.mktemp("tiny"))
 
 
+def test_phase2_trains_on_crops_of_the_phase1_run(runs, tmp_path, monkeypatch):
+    """The default inputs: the detector of the phase-1 run on every crop of its training split,
+    handed to the trainer (whose loop the "sequence" tests cover) once the run is accepted."""
+    import dataclasses
+
+    from nmjax import runs as run_folders
+    from nmjax.config import dyn_preset
+
+    cfg = dyn_preset("synth-arm", "tiny")
+    assert cfg.inputs == "crop"
+    cfg = dataclasses.replace(cfg, skel_run=str(runs["skel"]), run=str(tmp_path / "dyn"))
+    handed = {}
+
+    def train(cfg, skeleton, inputs, **kwargs):
+        handed.update(cfg=cfg, skeleton=skeleton, inputs=inputs)
+        return tmp_path / "dyn", []
+
+    monkeypatch.setattr(run_folders.dyn, "train", train)
+    run_folders.train_dynamics(cfg, progress=False)
+    assert handed["cfg"].inputs == "crop" and handed["skeleton"][0] == PARENTS
+    data = handed["inputs"]()  # the detector runs only now
+    detector = run_folders.phase2_detector(runs["skel"])
+    train_seqs = list(run_folders.split_sequences(detector, "train").values())
+    starts = [run_folders.crop_starts(seq.num_frames, cfg.frames, 1) for seq in train_seqs]
+    assert len(data.starts) == sum(len(s) for s in starts) > len(train_seqs)
+    assert data.poses.shape == (len(data.starts) * cfg.frames, K, 4)
+    last = (train_seqs[-1], int(starts[-1][-1]))  # the last crop of the table
+    np.testing.assert_allclose(
+        data.poses[-cfg.frames :],
+        run_folders.detect_clips(detector, [last], cfg.frames)[0],
+        atol=1e-6,
+    )
+    assert data.val.shape[1:] == (cfg.frames, K, 4) and data.val_cond.shape[1] == 1
+
+
 def test_generate_command(runs, tmp_path):
     from nmjax import cli
 
@@ -345,6 +431,15 @@ def test_generate_command(runs, tmp_path):
         for s in range(2):  # every sample starts with the 2 observed frames it was given
             np.testing.assert_array_equal(z["keypoints"][:, s, :2], z["observed"][:, :2])
         name = str(z["names"][0])
+        observed = z["observed"]
+    # "crop" inputs: the clip's first crop (T = 6 frames) normalised on its own, its first 2
+    # frames through the detector on their own, as the release's generation conditions.
+    from nmjax import runs as run_folders
+
+    detector = run_folders.phase2_detector(runs["skel"])
+    seq = run_folders.split_sequences(detector, "test")[name]
+    x_cond = run_folders.detect_clips(detector, [(seq, 0)], 6, detect=2)
+    np.testing.assert_allclose(observed[:, :2], x_cond, atol=1e-6)
     with np.load(out / "voxels.npz") as z:
         assert z["voxels"].shape == (1, 2, 13, 16, 16, 16)
     assert (out / f"{name}.gif").stat().st_size > 0 and (out / f"{name}.png").is_file()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+from pathlib import Path
 
 import chex
 import jax
@@ -13,12 +14,16 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
+from tiny_configs import small_skel_config
 
 from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
-from nmjax.config import dyn_preset
-from nmjax.models.dynamics import bone_lengths
+from nmjax.config import DynamicsConfig, dyn_preset
+from nmjax.data.datasets import Sequence
+from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.models.detector import KeypointDetector
+from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common, dyn
 
 PARENTS = (0, 0, 1, 2, 1)  # root 0; chain 0 -> 1 -> 2 -> 3 and a branch 1 -> 4
@@ -68,7 +73,10 @@ def make_fake_run(path, seed: int = 0):
 
 
 def tiny_cfg(skel_run, run, **overrides):
+    """The tiny preset on a fake phase-1 run: its exported keypoints ("sequence" inputs), as the
+    fake run has no detector to run on crops."""
     cfg = dyn_preset("synth-arm", "tiny")
+    overrides = {"inputs": "sequence", **overrides}
     return dataclasses.replace(cfg, skel_run=str(skel_run), run=str(run), **overrides)
 
 
@@ -188,6 +196,23 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     np.testing.assert_allclose(float(metrics["last_pose"]), expected, rtol=1e-5)
 
 
+def test_phase2_kl_is_the_mean_of_the_per_dimension_kl(fake_run):
+    """The release's reduction: mean over batch, time and latent dimension (not summed over D_z)."""
+    cfg = DynamicsConfig(latent=4, hidden=8, mlp=8, posterior_samples=2)
+    model = Dynamics(cfg, PARENTS, ORDER, rngs=nnx.Rngs(0))
+    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "train"), 6)[:3])
+    key = jax.random.key(1)
+    _, metrics = dyn.loss_fn(model, x, key, 0.5)
+    out = model(x, key)
+    mq, sq, mp, sp = (np.asarray(a, np.float64) for a in out[3:])  # (B, T, D_z) each
+    per_dimension = np.log(sp / sq) + (sq**2 + (mq - mp) ** 2) / (2 * sp**2) - 0.5
+    assert per_dimension.shape == (3, 6, 4)
+    np.testing.assert_allclose(float(metrics["kl"]), per_dimension.mean(), rtol=1e-5)
+    np.testing.assert_allclose(
+        float(metrics["loss"]), float(metrics["recon"]) + 0.5 * per_dimension.mean(), rtol=1e-5
+    )
+
+
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=4, val_every=4, log_every=1)
     run_full, hist_full = runs.train_dynamics(cfg, progress=False)
@@ -209,6 +234,7 @@ def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
 def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, tmp_path, capsys):
     run = tmp_path / "cli"
     argv = ["--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
+    argv += ["--set", "inputs=sequence"]
     assert nmjax_main(["train-dyn", *argv, "--steps", "10", "--run", str(run)]) == 0
     assert "final validation" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
@@ -245,9 +271,84 @@ def test_command_line_options_map_onto_the_config():
     )
     assert cfg.model.model == "vrnn" and cfg.steps == 7
     assert cfg.model.hidden == dyn_preset("synth-hand", "cpu").model.hidden
+    # --steps on the default preset (in epochs) turns the run into a step count.
+    cfg = dyn_config(parse_dyn(["--steps", "50"]))
+    assert (cfg.epochs, cfg.steps, cfg.optimizer_reset) == (0, 50, "epoch")
+    assert dyn_config(parse_dyn([])).epochs == 150
     cfg = dyn_config(parse_dyn(["--set", "kl_weight=1e-5", "--set", "model.latent=8"]))
     assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8 and cfg.model.model == "nm"
     with pytest.raises(ValueError, match="no_such_field"):  # an unknown field is named
         dyn_config(parse_dyn(["--set", "model.no_such_field=1"]))
     with pytest.raises(ValueError, match="--resume needs --run"):
         dyn_config(parse_dyn(["--resume"]))
+
+
+# --- "crop" inputs: every crop normalised on its own and run through the detector --------------
+
+
+def translated_body(frames: int = 9) -> Sequence:
+    """A rigid blob of points walking 2 units along x (about twice its size) over the sequence."""
+    rng = np.random.default_rng(0)
+    body = rng.normal(size=(400, 3)) * np.array([0.3, 0.2, 0.5])
+    shift = np.linspace(0.0, 2.0, frames)[:, None, None] * np.array([1.0, 0.0, 0.0])
+    return Sequence("walk", (body[None] + shift).astype(np.float32), None, Path("walk.npy"))
+
+
+def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_path):
+    cfg = small_skel_config(tmp_path)  # an untrained detector: G=8, K=4, phase-1 T=3
+    detector = runs.Detector.of(KeypointDetector(cfg.model, rngs=nnx.Rngs(0)), cfg, tmp_path)
+    seq, frames, grid = translated_body(), 4, cfg.data.grid
+    crop = runs.crop_inputs(detector, [seq], [seq], frames, progress=False)
+    assert list(crop.starts) == [
+        0,
+        4,
+        8,
+        12,
+        16,
+        20,
+    ]  # every start of the 9 frames, laid end to end
+
+    # "sequence": one box over the walk, the detector on consecutive windows (export_keypoints).
+    whole = runs.sequence_voxels(seq, cfg.data.sample_rate, grid)
+    windows = detector.keypoints(runs.sequence_windows(whole, cfg.data.frames))
+    trajectory = windows.reshape(-1, *windows.shape[2:])[: seq.num_frames]
+    cut = dyn.sequence_inputs({"train": {"walk": trajectory}, "test": {"walk": trajectory}}, frames)
+
+    def crop_at(inputs, s):
+        return inputs.poses[inputs.starts[s] : inputs.starts[s] + frames]
+
+    for s in (0, 5):
+        own, _ = normalize_sequence(seq.vertices[s : s + frames])
+        direct = detector.keypoints(voxelize(own, grid)[None])[0]
+        np.testing.assert_allclose(crop_at(crop, s), direct, atol=1e-6)
+        assert np.abs(crop_at(cut, s)[..., :3] - direct[..., :3]).max() > 0.03
+    # Normalised on itself, a translated crop is the same crop; in the sequence's box it is not.
+    np.testing.assert_allclose(crop_at(crop, 0), crop_at(crop, 5), atol=1e-6)
+    assert np.abs(crop_at(cut, 0) - crop_at(cut, 5)).max() > 0.03
+
+    # Validation: the first crop, and its first T_cond frames detected alone for generation.
+    own, _ = normalize_sequence(seq.vertices[:frames])
+    voxels = voxelize(own, grid)[None]
+    np.testing.assert_allclose(crop.val[0], detector.keypoints(voxels)[0], atol=1e-6)
+    t_cond = dyn.condition_frames(frames)
+    assert crop.val_cond.shape == (len(crop.val), t_cond, 4, 4)
+    np.testing.assert_allclose(
+        crop.val_cond[0], detector.keypoints(voxels[:, :t_cond])[0], atol=1e-6
+    )
+
+
+def test_validation_generates_from_the_given_conditioning_keypoints(fake_run):
+    model = Dynamics(
+        DynamicsConfig(latent=4, hidden=8, mlp=8, posterior_samples=2),
+        PARENTS,
+        ORDER,
+        rngs=nnx.Rngs(0),
+    )
+    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "test"), 6))
+    other = x[:, :1] + 0.5  # conditioning keypoints that differ from the crop's own
+    key = jax.random.key(0)
+    metrics, generated = dyn.evaluate(model, x, other, key)
+    expected, _ = model.generate(other, x.shape[1] - 1, jax.random.split(key, 3)[2])
+    np.testing.assert_allclose(generated, expected, atol=1e-6)
+    hold = np.mean(np.sum((np.asarray(x[:, 1:]) - np.asarray(other)) ** 2, axis=(-2, -1)))
+    np.testing.assert_allclose(float(metrics["gen_hold"]), hold, rtol=1e-5)

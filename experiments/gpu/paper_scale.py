@@ -12,7 +12,8 @@ later stage's failure or the whole script being killed.
 Stages, in priority order; a stage that no longer fits the overall budget is skipped, and the
 training run gets what is left (up to its target) after keeping time for the stages after it:
 
-  devices               jax.devices(), versions, the first device's memory_stats()
+  devices               jax.devices(), versions, the first device's memory_stats(), the
+                        provenance stamp of `nmjax.provenance` (CPU and GPU model, commit)
   data                  the synth-arm set (`nmjax prepare-data`), made before anything is timed
   bench_skel_f32        `nmjax bench`, phase 1 at G=64, C=128, K=28, batch 3 x T=10, float32
   bench_skel_f32_24gib  the same row with the GPU allocator capped at 24 GiB (the authors' GPU);
@@ -116,6 +117,11 @@ info = {
     "versions": versions,
     "missing_modules": [m for m in modules if importlib.util.find_spec(m) is None],
 }
+try:  # the stamp every results file of the project carries (nmjax.provenance)
+    from nmjax import provenance
+    info["provenance"] = provenance.stamp()
+except ImportError as err:
+    info["provenance"] = f"not recorded: {err}"
 print(json.dumps(info, indent=1))
 with open(sys.argv[1], "w") as f:
     json.dump(info, f)

@@ -19,7 +19,9 @@ Compile time is `jit(...).lower(...).compile()`, timed on its own; the compiled 
 the one that runs. Memory: the compiled step's `memory_analysis()` (argument, output, temporary
 bytes) and the device's `memory_stats()["peak_bytes_in_use"]` where it reports one (GPU), else the
 process's peak resident set size (`resource.getrusage`). Both only grow within a process, so with
-several rows each row is measured in a fresh process (`--same-process` to opt out).
+several rows each row is measured in a fresh process (`--same-process` to opt out). The JSON of
+`--out` opens with the provenance stamp (`nmjax.provenance`: commit, CPU model, GPU, versions and
+`METRICS`, the definitions of the columns).
 
 The convolution forms are compared through the configuration (`--set skel:model.conv_form=native`
 against the default "auto"; the row records the field); the optimisations in the kernels
@@ -48,6 +50,18 @@ from nmjax.config import apply_overrides, dataset_spec, dyn_preset, skel_preset
 
 PHASES = ("skel", "dyn")
 MEMORY_KEYS = ("argument_bytes", "output_bytes", "temp_bytes")
+# What each row reports, recorded in every results file (`nmjax.provenance`).
+METRICS = {
+    "steps_per_s": "timed steps / (load + compute seconds): the rate a training run sees",
+    "frames_per_s": "steps_per_s x B x T: training frames consumed per second",
+    "load_s_per_step": "phase 1: wait for the next grain batch plus host -> device placement, "
+    "blocked until ready; phase 2: 0 (crops gathered on the device inside the step)",
+    "compute_s_per_step": "the compiled step until its outputs are ready, mean over the timed "
+    "steps (compute_s_median: their median)",
+    "compile_s": "jit(step).lower(...).compile(), timed on its own; the executable then runs",
+    "memory": "memory_analysis() argument / output / temp bytes of the compiled step; "
+    "peak_bytes_in_use of the device where it reports one (GPU), else the process's peak RSS",
+}
 
 
 # --- environment ------------------------------------------------------------------------------
@@ -67,14 +81,17 @@ def environment() -> dict[str, Any]:
     }
 
 
-def print_and_save(table: str, out: str | None, env: dict, args: Any, rows: list) -> None:
-    """Prints a benchmark's table; with `out`, writes {"environment", "args", "rows"} there."""
-    from nmjax import atomic
+def print_and_save(
+    table: str, out: str | None, env: dict, args: Any, rows: list, stamp: dict
+) -> None:
+    """Prints a benchmark's table; with `out`, writes {"provenance": `stamp`, "environment",
+    "args", "rows"} there."""
+    from nmjax import provenance
 
     print()
     print(table)
     if out is not None:
-        atomic.write_json(out, {"environment": env, "args": vars(args), "rows": rows})
+        provenance.write_json(out, {"environment": env, "args": vars(args), "rows": rows}, stamp)
         print(f"wrote {out}")
 
 
@@ -355,12 +372,16 @@ def run_job_subprocess(
 
 
 def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[str, Any]:
-    """Runs every (phase, preset[, model]) row; returns {"environment": ..., "rows": [...]}.
+    """Runs every (phase, preset[, model]) row; returns {"provenance": `nmjax.provenance.stamp`
+    with `METRICS`, "environment": ..., "args": ..., "rows": [...]}.
 
     With more than one row each runs in its own process unless `args.same_process`; this process
     then never touches a device (on a GPU it would hold the memory the rows need), and the
     environment is the first row's.
     """
+    from nmjax import provenance
+
+    stamp = provenance.stamp(METRICS)
     todo = jobs(args)
     separate = not args.same_process and len(todo) > 1
     env: dict[str, Any] = {} if separate else environment()
@@ -379,4 +400,4 @@ def run(args: argparse.Namespace, emit: Callable[[str], None] = print) -> dict[s
         emit(format_table(rows[-1:]).splitlines()[-1])
     emit("")
     emit(format_table(rows))
-    return {"environment": env, "args": vars(args), "rows": rows}
+    return {"provenance": stamp, "environment": env, "args": vars(args), "rows": rows}

@@ -17,18 +17,23 @@
 - Interpolation M-CD (Eq. 22, Tables 11-12) at sampling rates SR = 3, 5, ..., 30 for Ours (the
   "nm" dynamics), VRNN (a positional "vrnn" run on the same phase-1 run, when one is given or
   found next to RUN), Lerp and Slerp. Keyframes x_ts, x_te = x_{ts+SR} are taken every SR frames
-  of each test sequence (whole sequence normalised with one bounding box, as the phase-1 run's
-  keypoints_test.npz); each method's keypoints are turned into voxels by the phase-1 decoder
-  (gaussian maps of the keypoints + the features of frame ts, Eq. 7) thresholded at 0.5 and
-  compared with the true voxels on difference voxels. Reported x1e3 (the paper does not state
-  its scale); mean and 95% confidence interval over test sequences.
+  of each test sequence, as the phase-2 run was fed (its `inputs`): "crop", each clip ts..te (at
+  least T frames) normalised with its own bounding box and run through the detector;
+  "sequence", cut from the whole sequence normalised with one box (keypoints_test.npz). Each
+  method's keypoints are turned into voxels by the phase-1 decoder (gaussian maps of the
+  keypoints + the features of frame ts, Eq. 7) thresholded at 0.5 and compared with the true
+  voxels of the same clip on difference voxels. Reported x1e3 (the paper does not state its
+  scale); mean and 95% confidence interval over test sequences.
 
-Writes `<out>/results.json`, `<out>/tables.md` and `<out>/mcd.png` (default out: `<run>/eval`).
+Writes `<out>/results.json`, `<out>/tables.md` and `<out>/mcd.png` (default out: `<run>/eval`),
+each stamped with the commit, machine and metric definitions (`nmjax.provenance`).
 
     nmjax evaluate --run RUN [--vrnn-run RUN2] --generation [--horizons 25,100,300] [--samples 10]
 
 evaluates generation instead (beyond the paper, which shows it only as pictures): on conditioning
-clips of T_cond test frames, S futures per clip from Ours, VRNN and the hold-last-pose baseline,
+clips of T_cond test frames (on "crop" inputs detected as the release's generation does, the
+first T_cond frames of the clip's first crop normalised on its own), S futures per clip from Ours,
+VRNN and the hold-last-pose baseline,
 at each horizon N (generated frames) the diversity (average pairwise distance of the S samples,
 and of the generated set as a whole), the bone-length error of the generated frames
 (`metrics.bone_length_variation` on the pruned skeleton) and the set distance to the real test
@@ -47,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, runs, tasks
+from nmjax import atomic, metrics, provenance, runs, tasks
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
 from nmjax.train import common
@@ -55,6 +60,32 @@ from nmjax.train import common
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
 METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
 MCD_SCALE = 1e3
+# One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
+PHASE1_METRICS = {
+    "sc": "SC-score, Eq. 21 as published: in each frame keypoints with alpha < 0.2 are no "
+    "candidates for a joint's nearest keypoint; counts over all test frames (Table 1)",
+    "sc_fixed_nodes": "Eq. 21 over the fixed node set of the pruned skeleton in every frame",
+    "tracking": "4D-tracking Chamfer x1e4 (Table 2): reconstruction thresholded at 0.5 against "
+    "the crop's voxels, mean per sequence; mean and 95% CI over test sequences",
+    "bone_length_variation": "std / mean of each bone's length of the pruned skeleton over a "
+    "crop of T frames, mean over bones and crops",
+    "joint_distance": "mean distance from a ground-truth joint to its nearest kept node (cube "
+    "[-1, 1]^3), mean over joints and frames per sequence; mean and 95% CI over sequences",
+    "joint_coverage_0.05, joint_coverage_0.10": "share of joint-frames with a kept node within "
+    "0.05 (0.10)",
+    "edge_precision": "share of skeleton edges whose nodes' joints are the same or adjacent in "
+    f"the true tree (edge_precision_within_{metrics.TWO_HOPS}_hops: within two hops)",
+    "bone_recall": "share of true bones whose joints' nodes are the same or adjacent in the "
+    "skeleton",
+    "distinct_nodes": "kept nodes that are some joint's most frequent nearest kept node",
+}
+INTERPOLATION_METRICS = {
+    "interpolation": "M-CD (Eq. 22) x1e3, Tables 11-12: keypoints between keyframes SR frames "
+    "apart decoded to voxels (phase-1 decoder, threshold 0.5), compared with the true voxels "
+    "on difference voxels; mean and 95% CI over test sequences",
+    "interpolation_keypoints": "squared xyz error of the in-between keypoints against the "
+    "detector's, summed over K, mean over frames; mean and 95% CI over test sequences",
+}
 
 
 # --- statistics -------------------------------------------------------------------------------
@@ -271,10 +302,51 @@ def keyframe_starts(num_frames: int, rate: int, max_segments: int) -> np.ndarray
     return starts
 
 
+def keyframe_clips(
+    detector: Detector,
+    seq,
+    starts: np.ndarray,
+    rate: int,
+    sequence: tuple[np.ndarray, np.ndarray | None] | None,
+    frames: int,
+    voxels: bool,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """The clips x_ts .. x_te (te = ts + SR) of the interpolation evaluation.
+
+    Args:
+      detector: the phase-1 detector.
+      seq: the test `Sequence`.
+      starts: (n,) keyframes ts, in sampled frames.
+      rate: SR.
+      sequence: ("sequence" inputs) the sequence's keypoints (S, K, 4) from keypoints_<split>.npz
+        and voxels (S, G, G, G) of one box over the whole sequence (None without `voxels`); the
+        clips are cut from them. None ("crop" inputs): every clip is max(T, SR + 1) frames from
+        ts normalised with its own bounding box and run through the detector as one crop, as the
+        release's interpolation takes its keyframes.
+      frames: T of phase 2 ("crop" inputs).
+      voxels: also return the clips' voxels.
+
+    Returns:
+      keypoints (n, SR + 1, K, 4) and voxels (n, SR + 1, G, G, G) or None.
+    """
+    if sequence is not None:
+        kp, vox = sequence
+        index = starts[:, None] + np.arange(rate + 1)
+        return kp[index], (vox[index] if voxels else None)
+    data = detector.cfg.data
+    length = max(frames, rate + 1)
+    clips = [(seq, int(t) * data.sample_rate) for t in starts]
+    kp = runs.detect_clips(detector, clips, length)[:, : rate + 1]
+    if not voxels:
+        return kp, None
+    vox = np.stack([runs.clip_voxels(s, t, length, data)[: rate + 1] for s, t in clips])
+    return kp, vox
+
+
 def evaluate_interpolation(
     detector: Detector,
     interpolators: Interpolators,
-    trajectories: dict[str, np.ndarray],
+    trajectories: dict[str, np.ndarray] | None,
     rates: tuple[int, ...] = SAMPLING_RATES,
     max_segments: int = 4,
     chunk: int = 4,
@@ -283,6 +355,7 @@ def evaluate_interpolation(
     methods: tuple[str, ...] = METHODS,
     voxels: bool = True,
     keypoint_errors: dict | None = None,
+    frames: int = 20,
 ) -> dict[str, dict[str, dict]]:
     """M-CD (Eq. 22) x1e3 of every method at every sampling rate, per test sequence.
 
@@ -293,7 +366,9 @@ def evaluate_interpolation(
     Args:
       detector: the phase-1 run's detector (its decoder turns keypoints into voxels).
       interpolators: the phase-2 models.
-      trajectories: {sequence: (S, K, 4)} keypoints of `split` (keypoints_<split>.npz).
+      trajectories: {sequence: (S, K, 4)} keypoints of `split` (keypoints_<split>.npz) for
+        models trained on "sequence" inputs; None for "crop" inputs: each keyframe clip is then
+        normalised on its own and run through the detector (`keyframe_clips`).
       rates: sampling rates SR (gap between keyframes, in sampled frames).
       max_segments: keyframe pairs per sequence and rate, spread over the sequence.
       chunk: keyframe pairs decoded at once (fixed, so each rate compiles once).
@@ -302,6 +377,7 @@ def evaluate_interpolation(
       methods: the methods to run (VRNN is dropped when no VRNN model is given).
       voxels: decode and score M-CD; False computes only `keypoint_errors` (much faster).
       keypoint_errors: optional dict to receive the keypoint errors.
+      frames: T of phase 2, the shortest clip detected on "crop" inputs.
 
     Returns:
       {method: {str(SR): {"mean", "ci95", "n", "per_sequence"}}}; methods without a model left
@@ -315,16 +391,19 @@ def evaluate_interpolation(
     kp_seq: dict[str, dict[int, dict[str, float]]] = {m: {r: {} for r in rates} for m in methods}
     key = jax.random.key(seed)
     for seq in load_sequences(cfg.data.name, split, cfg.data.root):
-        if seq.name not in trajectories:
-            raise ValueError(
-                f"sequence {seq.name!r} of the {split} split has no keypoints in the phase-1 "
-                f"run's keypoints_{split}.npz; re-export them with "
-                f"`nmjax export-keypoints --run {detector.run}`"
-            )
-        kp = trajectories[seq.name]
-        vox = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
+        sequence = None
+        if trajectories is not None:
+            if seq.name not in trajectories:
+                raise ValueError(
+                    f"sequence {seq.name!r} of the {split} split has no keypoints in the phase-1 "
+                    f"run's keypoints_{split}.npz; re-export them with "
+                    f"`nmjax export-keypoints --run {detector.run}`"
+                )
+            vox = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid) if voxels else None
+            sequence = (trajectories[seq.name], vox)
+        sampled = -(-seq.num_frames // cfg.data.sample_rate)  # frames of the sampled sequence
         for rate in rates:
-            starts = keyframe_starts(len(kp), rate, max_segments)
+            starts = keyframe_starts(sampled, rate, max_segments)
             if len(starts) == 0:
                 continue  # the sequence is shorter than one gap
             scores: dict[str, list[float]] = {m: [] for m in methods}
@@ -333,19 +412,17 @@ def evaluate_interpolation(
                 ts = starts[i : i + chunk]
                 ts = common.pad_with_last(ts, chunk)  # a fixed shape: one compilation per rate
                 real = min(chunk, len(starts) - i)
-                frames = ts[:, None] + np.arange(rate + 1)  # (chunk, SR + 1)
+                kp, vox = keyframe_clips(detector, seq, ts, rate, sequence, frames, voxels)
                 key, sub = jax.random.split(key)
                 for method in methods:
-                    x = interpolators.run(method, kp[ts], kp[ts + rate], rate, sub)
-                    inner = np.sum(
-                        (x[:real, 1:-1, :, :3] - kp[frames[:real, 1:-1], :, :3]) ** 2, -1
-                    )
+                    x = interpolators.run(method, kp[:, 0], kp[:, -1], rate, sub)
+                    inner = np.sum((x[:real, 1:-1, :, :3] - kp[:real, 1:-1, :, :3]) ** 2, -1)
                     kp_err[method] += list(np.mean(np.sum(inner, -1), -1)) if rate > 1 else []
                     if not voxels:
                         continue
-                    recon = detector.decode(x, vox[ts])
+                    recon = detector.decode(x, vox[:, 0])
                     for j in range(real):
-                        mcd = metrics.motion_chamfer(vox[frames[j]], recon[j])
+                        mcd = metrics.motion_chamfer(vox[j], recon[j])
                         scores[method].append(mcd * MCD_SCALE)
             for method in methods:
                 if voxels:
@@ -407,6 +484,7 @@ GEN_MEASURES = {
         "95% CI over real clips",
     ),
 }
+GENERATION_METRICS = {name: title for name, (title, _) in GEN_MEASURES.items()}
 
 
 def conditioning_clips(
@@ -572,6 +650,7 @@ def evaluate_generation(
     real_per_sequence: int = 16,
     seed: int = 0,
     real_trajectories: dict[str, np.ndarray] | None = None,
+    conditioning: tuple[list[tuple[str, int]], np.ndarray] | None = None,
 ) -> dict:
     """Diversity, bone-length error and set distance to real motion of generated motion at
     several horizons, for each model and the hold-last-pose baseline.
@@ -596,6 +675,9 @@ def evaluate_generation(
       real_trajectories: {sequence: (T_seq, K, 4)} the real clips are cut from instead of the
         test keypoints, e.g. the detector's keypoints of longer sequences of the same body
         (`runs.export_keypoints(..., data_root=...)`), so that long horizons have real clips.
+      conditioning: ([(sequence, start)], x_cond (B, cond, K, 4)) the clips to condition on;
+        default `conditioning_clips` of `trajectories` (the models' "crop" inputs pass the same
+        clips detected on their own, `crop_conditioning`).
 
     Returns:
       {"clips": [[sequence, start]], "methods": {method: {str(N): `generation_measures`}},
@@ -606,6 +688,8 @@ def evaluate_generation(
     parents, kept = np.asarray(parents), np.asarray(kept, bool)
     root = int(np.flatnonzero(parents == np.arange(len(parents)))[0])
     names, x_cond = conditioning_clips(trajectories, cond, clips)
+    if conditioning is not None:
+        names, x_cond = conditioning
     longest = max(horizons)
     futures = {
         method: generated_futures(model, x_cond, longest, samples, jax.random.key(seed))
@@ -803,6 +887,20 @@ def interpolation_table(mcd: dict | None, title: str) -> list[str]:
 # --- the command ---------------------------------------------------------------------------------
 
 
+def crop_conditioning(
+    detector: Detector, clips: list[tuple[str, int]], cond: int, frames: int
+) -> np.ndarray:
+    """x_cond (B, cond, K, 4) of conditioning clips as the release's generation takes it.
+
+    Each clip (sequence, start in sampled frames) is its first crop, max(T, cond) frames,
+    normalised with its own bounding box; its first `cond` frames go through the detector on
+    their own (`runs.detect_clips`).
+    """
+    seqs, rate = runs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
+    located = [(seqs[name], start * rate) for name, start in clips]
+    return runs.detect_clips(detector, located, max(frames, cond), detect=cond)
+
+
 def evaluate_generation_run(
     run: str | Path,
     *,
@@ -820,27 +918,35 @@ def evaluate_generation_run(
     generation.png into `out` (default RUN/eval). `real_keypoints`: an .npz of keypoint
     sequences (the layout of keypoints_test.npz) to cut the real clips from."""
     run = Path(run)
+    stamp = provenance.stamp(GENERATION_METRICS)
     if runs.run_kind(run) != "dyn":
         raise ValueError(
             f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
         )
-    _, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
+    dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
     skeleton = runs.pruned_skeleton(skel_run)
     if skeleton is None:
         raise FileNotFoundError(
             f"{skel_run}/skeleton.json not found; run `nmjax extract-skeleton --run {skel_run}`"
         )
+    trajectories = runs.load_trajectories(skel_run, "test")
+    conditioning = None
+    if dyn_cfg.inputs == "crop":
+        names, _ = conditioning_clips(trajectories, cond, clips)
+        x_cond = crop_conditioning(runs.phase2_detector(skel_run), names, cond, dyn_cfg.frames)
+        conditioning = (names, x_cond)
     models = {"Ours": nnx.split(runs.restore_dynamics(run))}
     if vrnn_run is not None:
         models["VRNN"] = nnx.split(runs.restore_dynamics(vrnn_run))
     settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
+    settings["inputs"] = dyn_cfg.inputs
     real = None
     if real_keypoints is not None:
         real = runs.read_trajectories(Path(real_keypoints))
         settings["real_keypoints"] = str(real_keypoints)
     gen = evaluate_generation(
         models,
-        runs.load_trajectories(skel_run, "test"),
+        trajectories,
         *skeleton,
         horizons=horizons,
         cond=cond,
@@ -848,8 +954,10 @@ def evaluate_generation_run(
         clips=clips,
         seed=seed,
         real_trajectories=real,
+        conditioning=conditioning,
     )
     results = {
+        "provenance": stamp,
         "run": str(run),
         "skel_run": str(skel_run),
         "vrnn_run": None if vrnn_run is None else str(vrnn_run),
@@ -858,13 +966,20 @@ def evaluate_generation_run(
     }
     out = Path(out) if out is not None else run / "eval"
     atomic.write_json(out / "generation.json", results)
-    atomic.write_text(out / "generation.md", generation_markdown(results))
+    provenance.write_markdown(out / "generation.md", generation_markdown(results), stamp)
     from nmjax import viz  # matplotlib only where a picture is drawn
 
     viz.plot_generation(
         out / "generation.png", results, reference=REFERENCE, title=f"{run.name}: generation"
     )
+    provenance.stamp_png(out / "generation.png", stamp)
     return results
+
+
+INPUTS_NOTE = {
+    "crop": "each clip's first crop normalised on its own, its first frames detected alone",
+    "sequence": "the whole-sequence export",
+}
 
 
 def generation_markdown(results: dict) -> str:
@@ -875,11 +990,14 @@ def generation_markdown(results: dict) -> str:
         f"# Generation of {results['run']}",
         "",
         f"VRNN baseline: {results['vrnn_run'] or 'none found'}. {n_clips} conditioning clips of "
-        f"{st['cond']} test frames ({st['clips']} per test sequence), {st['samples']} samples "
-        f"each; horizon N = frames generated after them. Distances are mean per-frame keypoint "
-        f"distances (Euclidean, xyz, normalised units) over the {st['kept_nodes']} nodes of the "
-        "pruned skeleton. Hold last pose repeats the last conditioning frame: diversity and "
-        "bone-length error 0 by construction (up to float round-off). Ours keeps every bone of "
+        f"{st['cond']} test frames ({st['clips']} per test sequence; keypoints of "
+        f"{INPUTS_NOTE.get(st.get('inputs', 'sequence'), st.get('inputs'))}), {st['samples']} "
+        f"samples each; horizon N = frames generated after them; the real clips are cut from "
+        f"{st.get('real_keypoints', 'keypoints_test.npz')} (whole sequences). Distances are mean "
+        f"per-frame keypoint distances (Euclidean, xyz, normalised units) over the "
+        f"{st['kept_nodes']} nodes of the pruned skeleton. Hold last pose repeats the last "
+        "conditioning frame: diversity and bone-length error 0 by construction (up to float "
+        "round-off). Ours keeps every bone of "
         "its full tree exactly (forward kinematics with the lengths of the conditioning "
         "frames); a bone of the pruned tree that skips a pruned joint can still change length.",
         "",
@@ -900,8 +1018,10 @@ def evaluate_run(
 ) -> dict:
     """Evaluates a phase-2 run (all tables) or a phase-1 run (Tables 1-2); writes the results."""
     run = Path(run)
-    results: dict[str, Any] = {"run": str(run)}
-    if runs.run_kind(run) == "dyn":
+    dyn = runs.run_kind(run) == "dyn"
+    definitions = {**PHASE1_METRICS, **(INTERPOLATION_METRICS if dyn else {})}
+    results: dict[str, Any] = {"provenance": provenance.stamp(definitions), "run": str(run)}
+    if dyn:
         dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
         results["skel_run"] = str(skel_run)
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
@@ -912,7 +1032,9 @@ def evaluate_run(
     if dyn_cfg is not None:
         nm = nnx.split(runs.restore_dynamics(run))
         vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
-        traj = runs.load_trajectories(skel_run, "test")
+        traj = None
+        if dyn_cfg.inputs == "sequence":
+            traj = runs.load_trajectories(skel_run, "test")
         interp = Interpolators(nm, vrnn, trajectories)
         kp_errors: dict = {}
         results["interpolation"] = evaluate_interpolation(
@@ -923,6 +1045,7 @@ def evaluate_run(
             max_segments=max_segments,
             seed=seed,
             keypoint_errors=kp_errors,
+            frames=dyn_cfg.frames,
         )
         results["interpolation_keypoints"] = kp_errors
         results["settings"] = {
@@ -931,12 +1054,14 @@ def evaluate_run(
             "max_crops": max_crops,
             "seed": seed,
             "mcd_scale": MCD_SCALE,
+            "inputs": dyn_cfg.inputs,
         }
     out = Path(out) if out is not None else run / "eval"
     atomic.write_json(out / "results.json", results)
-    atomic.write_text(out / "tables.md", markdown_tables(results))
+    provenance.write_markdown(out / "tables.md", markdown_tables(results), results["provenance"])
     if "interpolation" in results:
         from nmjax import viz  # matplotlib only where a picture is drawn
 
         viz.plot_mcd(out / "mcd.png", results["interpolation"], title=str(run.name))
+        provenance.stamp_png(out / "mcd.png", results["provenance"])
     return results

@@ -342,7 +342,9 @@ def kl_diag_gaussians(
         axis: summed axis (the latent dimension, default last); None returns per-dimension values.
 
     Returns:
-        (...) KL per distribution, or (..., D) with `axis=None`. Average over (B, T) for Eq. 4.
+        (...) KL per distribution, or (..., D) with `axis=None`. The phase-2 loss
+        (`nmjax.train.dyn.loss_fn`) takes the per-dimension values and averages them over batch,
+        time and dimension, as the authors' release reduces Eq. 4.
     """
     var_ratio = jnp.square(std_q / std_p)
     mahal = jnp.square((mean_q - mean_p) / std_p)

@@ -8,6 +8,11 @@ keypoints_{train,test}.npz (`export_keypoints`; one (S, K, 4) array per sequence
 checkpoints/ and metrics.jsonl. The file names are `nmjax.train.common`'s, which the trainers
 write by.
 
+Phase 2 reads its keypoints in one of two ways (`DynTrainConfig.inputs`): "crop", the release's,
+runs the phase-1 detector on every clip normalised with its own bounding box (`clip_voxels`,
+`detect_clips`, `crop_inputs`); "sequence" reads the whole-sequence export keypoints_*.npz, a
+cache that needs no detector (`load_trajectories`).
+
 Nothing here runs a model or writes a file as a side effect of reading: a missing export is an
 error naming the command that makes it.
 """
@@ -28,7 +33,7 @@ import numpy as np
 from flax import nnx
 
 from nmjax import atomic
-from nmjax.config import DynTrainConfig, SkelTrainConfig
+from nmjax.config import DynTrainConfig, SkelTrainConfig, resolve_epochs
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
 from nmjax.skeleton import (
@@ -51,6 +56,7 @@ from nmjax.train.common import (
 )
 
 RUNS_ROOT = Path("runs")
+CLIP_CHUNK = 8  # detector batches voxelised at once by `detect_clips` (bounds host memory)
 SPLITS = ("train", "test")
 
 
@@ -244,6 +250,160 @@ def finish_phase1(run: str | Path, *, export: bool = True) -> None:
         if parallel.is_primary():
             for split in SPLITS:
                 export_keypoints(run, split, detector=detector)
+
+
+# --- phase 1 -> phase 2: keypoints of clips, each normalised on its own ("crop" inputs) ----------
+
+
+def crop_starts(num_frames: int, frames: int, sample_rate: int) -> np.ndarray:
+    """Every first frame of a crop of `frames` frames taken every `sample_rate` frames: the starts
+    the release's random crop draws from (0 alone for a shorter sequence, padded when cut)."""
+    from nmjax.data.datasets import crop_span
+
+    return np.arange(max(num_frames - crop_span(frames, sample_rate), 0) + 1)
+
+
+def clip_voxels(
+    seq, start: int, frames: int, data: Any, box_frames: int | None = None
+) -> np.ndarray:
+    """(frames, G, G, G): a clip of `seq` normalised on its own bounding box and voxelised.
+
+    Frames start, start + r, ... (r = `data.sample_rate`, padded with the last frame past the
+    end), mapped into [-1, 1)^3 with the box of the clip's first `box_frames` frames (default: all
+    of them, as a training crop; DESIGN section 4) and voxelised on `data.grid`. A smaller box
+    keeps a longer clip in the frame of its first crop; points that leave the box land in the
+    border cells.
+
+    Args:
+      seq: a `nmjax.data.datasets.Sequence`.
+      start: first frame, in frames of the original sequence.
+      frames: frames of the clip.
+      data: the phase-1 run's `DataConfig` (grid, sample rate).
+      box_frames: how many leading frames the bounding box spans.
+    """
+    from nmjax.data.datasets import crop_sequence
+    from nmjax.data.voxelize import EPS, normalize_sequence, voxelize
+
+    points, _ = crop_sequence(seq, frames, data.sample_rate, start)
+    if box_frames is None or box_frames >= frames:
+        points, _ = normalize_sequence(points)
+    else:  # normalize_sequence's map with the box of the first frames only
+        box = np.asarray(points[:box_frames], np.float64).reshape(-1, 3)
+        bmin = box.min(axis=0)
+        scale = 2.0 / (float(np.max(box.max(axis=0) - bmin)) + EPS)
+        points = ((np.asarray(points, np.float64) - bmin) * scale - 1.0).astype(np.float32)
+    return voxelize(points, data.grid)
+
+
+def detect_clips(
+    detector: Detector,
+    clips: list[tuple[Any, int]],
+    frames: int,
+    detect: int | None = None,
+    *,
+    desc: str | None = None,
+) -> np.ndarray:
+    """Keypoints of clips each normalised on its own: (C, detect, K, 4).
+
+    Every clip (sequence, start) of `frames` frames is normalised with its own bounding box and
+    voxelised (`clip_voxels`); its first `detect` frames (default all) go through the detector
+    together, so the detector's temporal mean (Eq. 6) is the mean over exactly those frames.
+
+    Args:
+      detector: the phase-1 detector.
+      clips: [(Sequence, start frame)].
+      frames: frames of each clip (its bounding box spans all of them).
+      detect: leading frames run through the detector.
+      desc: a tqdm bar with this label over the clips; None: no bar.
+    """
+    from tqdm import tqdm
+
+    detect = frames if detect is None else detect
+    chunk = detector.cfg.data.batch_size * CLIP_CHUNK
+    out = []
+    with tqdm(total=len(clips), desc=desc, unit="clip", disable=desc is None) as bar:
+        for i in range(0, len(clips), chunk):
+            part = clips[i : i + chunk]
+            voxels = np.stack(
+                [clip_voxels(seq, start, frames, detector.cfg.data)[:detect] for seq, start in part]
+            )
+            out.append(detector.keypoints(voxels))
+            bar.update(len(part))
+    if not out:
+        return np.zeros((0, detect, detector.cfg.model.num_keypoints, 4), np.float32)
+    return np.concatenate(out).astype(np.float32)
+
+
+def validation_clips(seqs: list[Any], frames: int, sample_rate: int) -> list[tuple[Any, int]]:
+    """Deterministic validation clips: non-overlapping crops of every sequence, at most 64 spread
+    over all of them (as `dyn.validation_crops` picks windows of whole sequences)."""
+    from nmjax.data.datasets import crop_span
+
+    span = crop_span(frames, sample_rate)
+    clips = [
+        (seq, int(t))
+        for seq in seqs
+        for t in crop_starts(seq.num_frames, frames, sample_rate)
+        if t % span == 0
+    ]
+    if len(clips) > dyn.MAX_VAL_CROPS:
+        keep = np.linspace(0, len(clips) - 1, dyn.MAX_VAL_CROPS).astype(int)
+        clips = [clips[i] for i in keep]
+    return clips
+
+
+def crop_inputs(
+    detector: Detector, train: list[Any], test: list[Any], frames: int, progress: bool = True
+) -> dyn.Phase2Inputs:
+    """The "crop" phase-2 inputs: the detector on every crop, each normalised on its own.
+
+    Training: one crop of `frames` frames at every start of every training sequence
+    (`crop_starts`), the crops the release's random crop draws from; the step samples them
+    uniformly. Validation: `validation_clips` of the test sequences, and for their generation the
+    first T_cond frames of each clip detected on their own (`Dynamics.generate`'s conditioning,
+    as in the release). Costs one detector pass over (number of starts) x `frames` frames.
+
+    Args:
+      detector: the phase-1 run's detector.
+      train, test: the `Sequence`s of the two splits.
+      frames: T of phase 2.
+      progress: a tqdm bar over the training crops.
+    """
+    rate = detector.cfg.data.sample_rate
+    clips = [(seq, int(t)) for seq in train for t in crop_starts(seq.num_frames, frames, rate)]
+    crops = detect_clips(
+        detector, clips, frames, desc="phase-2 inputs: detector on every crop" if progress else None
+    )
+    val = validation_clips(test, frames, rate)
+    val_x = detect_clips(detector, val, frames)
+    val_cond = detect_clips(detector, val, frames, detect=dyn.condition_frames(frames))
+    return dyn.crop_inputs_of(crops, val_x, val_cond)
+
+
+def split_sequences(detector: Detector, split: str) -> dict[str, Any]:
+    """{name: Sequence} of a split of the detector's dataset (its phase-1 run's data and root)."""
+    from nmjax.data.datasets import load_sequences
+
+    data = detector.cfg.data
+    return {seq.name: seq for seq in load_sequences(data.name, split, data.root)}
+
+
+def phase2_detector(skel_run: str | Path) -> Detector:
+    """The detector phase 2 runs on crops ("crop" inputs): the phase-1 run's best checkpoint, else
+    its latest (`Detector.load`, as `nmjax export-keypoints` and the tasks).
+
+    Raises:
+      FileNotFoundError: the folder holds no detector checkpoint (names both ways out).
+    """
+    skel_run = Path(skel_run)
+    has_config = (skel_run / common.CONFIG_FILE).is_file()
+    if not has_config or not common.checkpoint_steps(skel_run / common.CHECKPOINTS):
+        raise FileNotFoundError(
+            f"{skel_run} holds no phase-1 detector checkpoint, and phase-2 inputs 'crop' run the "
+            "detector on every crop; give a trained phase-1 run (--skel-run) or train on its "
+            "exported keypoints with --set inputs=sequence"
+        )
+    return Detector.load(skel_run)
 
 
 # --- phase 1: the skeleton --------------------------------------------------------------------
@@ -484,17 +644,51 @@ def read_trajectories(path: str | Path) -> dict[str, np.ndarray]:
 def train_dynamics(
     cfg: DynTrainConfig, *, resume: bool = False, progress: bool = True, **kwargs: Any
 ) -> tuple[Path, list[dict[str, float]]]:
-    """Phase 2 on the phase-1 run `cfg.skel_run` (default: the latest of `cfg.data`): reads its
-    skeleton and exported keypoints, then `dyn.train`. The resolved phase-1 folder is stored in
-    the run's config.json."""
+    """Phase 2 on the phase-1 run `cfg.skel_run` (default: the latest of `cfg.data`), then
+    `dyn.train`. The resolved phase-1 folder is stored in the run's config.json.
+
+    Reads the run's skeleton and, by `cfg.inputs`, its detector and dataset ("crop": the
+    detector runs on every crop once the run folder is accepted, `crop_inputs`) or its exported
+    keypoints ("sequence"). Everything that can be refused is checked before the run folder is
+    made.
+    """
+    dyn.check_config(cfg)
     skel_run = find_skel_run(cfg.data, cfg.skel_run)
     skeleton = read_skeleton(skel_run)
-    trajectories = {split: load_trajectories(skel_run, split) for split in SPLITS}
     cfg = dataclasses.replace(cfg, skel_run=str(skel_run))
+    if cfg.inputs == "sequence":
+        trajectories = {split: load_trajectories(skel_run, split) for split in SPLITS}
+        for split, traj in trajectories.items():
+            k = {x.shape[1] for x in traj.values()}
+            if k != {skeleton.num_keypoints}:
+                raise ValueError(
+                    f"{keypoints_file(skel_run, split)} has K={sorted(k)} keypoints but "
+                    f"skeleton.json has {skeleton.num_keypoints} joints; re-export the keypoints "
+                    f"with `nmjax export-keypoints --run {skel_run}`"
+                )
+
+        def inputs() -> dyn.Phase2Inputs:
+            return dyn.sequence_inputs(trajectories, cfg.frames)
+
+    else:
+        detector = phase2_detector(skel_run)
+        if detector.cfg.model.num_keypoints != skeleton.num_keypoints:
+            raise ValueError(
+                f"the detector of {skel_run} has K={detector.cfg.model.num_keypoints} keypoints "
+                f"but skeleton.json has {skeleton.num_keypoints} joints; extract the skeleton "
+                f"again with `nmjax extract-skeleton --run {skel_run}`"
+            )
+        seqs = {split: list(split_sequences(detector, split).values()) for split in SPLITS}
+
+        def inputs() -> dyn.Phase2Inputs:
+            return crop_inputs(detector, seqs["train"], seqs["test"], cfg.frames, progress)
+
+    train_count = len(trajectories["train"]) if cfg.inputs == "sequence" else len(seqs["train"])
+    cfg = resolve_epochs(cfg, train_count, cfg.batch_size)
     return dyn.train(
         cfg,
         (skeleton.parents, skeleton.order),
-        trajectories,
+        inputs,
         resume=resume,
         progress=progress,
         **kwargs,
@@ -521,8 +715,9 @@ def load_phase2(run: str | Path) -> tuple[Dynamics, DynTrainConfig, Path]:
     return model, cfg, Path(cfg.skel_run)
 
 
-def find_vrnn_run(dyn_run: Path, skel_run: Path) -> Path | None:
-    """A positional-baseline phase-2 run beside `dyn_run` trained on the same phase-1 run."""
+def find_vrnn_run(dyn_run: Path, skel_run: Path, inputs: str = "crop") -> Path | None:
+    """A positional-baseline phase-2 run beside `dyn_run` trained on the same phase-1 run with
+    the same `inputs`."""
     for candidate in sorted(Path(dyn_run).parent.glob("*"), reverse=True):
         if candidate == Path(dyn_run) or not (candidate / common.CONFIG_FILE).is_file():
             continue
@@ -531,6 +726,7 @@ def find_vrnn_run(dyn_run: Path, skel_run: Path) -> Path | None:
         except (ValueError, FileNotFoundError, TypeError):
             continue
         same = cfg.skel_run and Path(cfg.skel_run).resolve() == Path(skel_run).resolve()
+        same = same and cfg.inputs == inputs
         if cfg.model.model == "vrnn" and same and (candidate / common.CHECKPOINTS).is_dir():
             return candidate
     return None
@@ -550,13 +746,21 @@ def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig,
         )
     skel_run = Path(dyn_cfg.skel_run)
     if vrnn_run is None:
-        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run)
+        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run, dyn_cfg.inputs)
     vrnn_run = Path(vrnn_run)
-    vrnn_skel = common.load_config(vrnn_run, DynTrainConfig).skel_run
+    vrnn_cfg = common.load_config(vrnn_run, DynTrainConfig)
+    vrnn_skel = vrnn_cfg.skel_run
     if not vrnn_skel or Path(vrnn_skel).resolve() != skel_run.resolve():
         raise ValueError(
             f"--vrnn-run {vrnn_run} was trained on the phase-1 run {vrnn_skel}, {run} on "
             f"{skel_run}; compare models of the same skeleton (train the baseline with "
             f"`nmjax train-dyn --model vrnn --skel-run {skel_run}`)"
+        )
+    if vrnn_cfg.inputs != dyn_cfg.inputs:
+        raise ValueError(
+            f"--vrnn-run {vrnn_run} was trained on inputs '{vrnn_cfg.inputs}', {run} on "
+            f"'{dyn_cfg.inputs}'; both methods condition on the same keypoints, so train the "
+            f"baseline with `nmjax train-dyn --model vrnn --skel-run {skel_run} --set "
+            f"inputs={dyn_cfg.inputs}`"
         )
     return dyn_cfg, skel_run, vrnn_run

@@ -475,7 +475,7 @@ def extract_skeleton(
     before symmetrising, nodes are ranked by (hop level, affinity-weighted distance
     1 - log(s / max s), index) (`refine_graph`), and `find_parents` takes the youngest
     higher-level neighbour; breadth-first order. Compared with Algorithm 1 on learned affinities
-    in experiments/results/alg1_methods.md.
+    in experiments/results/archive/alg1_methods.md.
 
     Both are deterministic (ties go to the lower keypoint index) and return a valid tree.
 

@@ -32,6 +32,7 @@ import numpy as np
 from flax import nnx
 
 from nmjax import atomic, geometry, runs
+from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common
 
@@ -39,12 +40,18 @@ from nmjax.train import common
 
 
 def generate_motion(
-    model: Dynamics, x_cond: jax.Array, num_frames: int, key: jax.Array, num_samples: int
+    model: Dynamics,
+    x_cond: jax.Array,
+    num_frames: int,
+    key: jax.Array,
+    num_samples: int,
+    posterior_samples: int | None = None,
 ) -> tuple[jax.Array, jax.Array]:
     """Motion generation (Sec. 5): several futures of each conditioning sequence.
 
-    The model runs T_cond posterior steps on the observed frames, then T_gen prior steps. The
-    motion returned starts with the observed frames themselves, not their posterior
+    The model runs T_cond posterior steps on the observed frames (best of `posterior_samples`
+    latents per step, as in training and in the release's generation), then T_gen prior steps.
+    The motion returned starts with the observed frames themselves, not their posterior
     reconstructions: a generated motion continues what was observed.
 
     Args:
@@ -53,6 +60,8 @@ def generate_motion(
       num_frames: T_gen, frames sampled from the prior after the observed ones (static).
       key: PRNG key; one sub-key per sample.
       num_samples: S, independent futures per input (static), drawn under `vmap`.
+      posterior_samples: latents drawn per observed frame, the closest kept (static); default
+        the model's configured `posterior_samples` (10), 1 = one posterior sample per step.
 
     Returns:
       keypoints (B, S, T_cond + T_gen, K, 4), the first T_cond frames equal to x_cond in every
@@ -60,7 +69,9 @@ def generate_motion(
       the first T_cond frames inferred by the posterior.
     """
     keys = jax.random.split(key, num_samples)
-    kp, rot = jax.vmap(lambda k: model.generate(x_cond, num_frames, k))(keys)  # (S, B, ...)
+    kp, rot = jax.vmap(lambda k: model.generate(x_cond, num_frames, k, posterior_samples))(
+        keys
+    )  # (S, B, ...)
     kp, rot = jnp.swapaxes(kp, 0, 1), jnp.swapaxes(rot, 0, 1)  # (B, S, ...)
     t_cond = x_cond.shape[1]
     observed = jnp.broadcast_to(x_cond[:, None], (kp.shape[0], num_samples, *x_cond.shape[1:]))
@@ -77,12 +88,14 @@ def interpolate_motion(
     gap: int,
     key: jax.Array,
     num_trajectories: int,
+    posterior_samples: int | None = None,
 ) -> jax.Array:
     """Generative interpolation (Sec. 5, Motion Interpolation) between two keyframes.
 
-    z is drawn from the posterior at the start keyframe (after any earlier context frames), then
-    the prior is rolled for `gap` frames; of `num_trajectories` rollouts (vmapped) the one whose
-    last frame has the smallest squared xyz distance to `x_end` is kept.
+    z is drawn from the posterior at the start keyframe (after any earlier context frames; best
+    of `posterior_samples` per observed frame, default the model's S), then the prior is rolled
+    for `gap` frames; of `num_trajectories` rollouts (vmapped) the one whose last frame has the
+    smallest squared xyz distance to `x_end` is kept.
 
     Args:
       model: dynamics module ("nm": Neural Marionette; "vrnn": the positional baseline).
@@ -92,12 +105,16 @@ def interpolate_motion(
       gap: te - ts, the number of frames generated after x_ts (static, >= 1).
       key: PRNG key.
       num_trajectories: rollouts to choose from (static).
+      posterior_samples: S of the best-of-S rule on the observed frames (static); default the
+        model's, 1 = one posterior sample per step.
 
     Returns:
       (B, gap + 1, K, 4): x_ts, the gap - 1 generated in-between frames, then x_te.
     """
     keys = jax.random.split(key, num_trajectories)
-    kp, _ = jax.vmap(lambda k: model.generate(x_start, gap, k))(keys)  # (N, B, C + gap, K, 4)
+    kp, _ = jax.vmap(lambda k: model.generate(x_start, gap, k, posterior_samples))(
+        keys
+    )  # (N, B, C + gap, K, 4)
     rollout = kp[:, :, x_start.shape[1] :]  # (N, B, gap, K, 4)
     error = jnp.sum(jnp.square(rollout[:, :, -1, :, :3] - x_end[None, :, :, :3]), axis=(-2, -1))
     best = jnp.argmin(error, axis=0)  # (B,)
@@ -430,11 +447,99 @@ def normalization_of(points: np.ndarray) -> tuple[np.ndarray, float]:
     return bmin, scale
 
 
+# --- a motion from a point-sequence file (`--source-file`) -----------------------------------
+
+
+def load_point_sequence(path: str | os.PathLike) -> np.ndarray:
+    """Reads a point-sequence file: a NumPy .npy of shape (T, N, >= 3), xyz first (the format
+    of the authors' data/demo/source/*.npy; further columns such as normals are dropped).
+
+    Returns:
+      (T, N, 3) float32.
+
+    Raises:
+      FileNotFoundError: no such file.
+      ValueError naming the file: not a .npy array, another shape, NaN / inf coordinates.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"point-sequence file {path} does not exist (--source-file)")
+    try:
+        points = np.load(path, allow_pickle=False)
+    except (ValueError, OSError) as err:
+        raise ValueError(
+            f"cannot read {path} as a NumPy .npy array ({' '.join(str(err).split())}); give a "
+            "(T, N, 3) point sequence saved with numpy.save"
+        ) from err
+    if points.ndim != 3 or points.shape[-1] < 3 or 0 in points.shape:
+        raise ValueError(
+            f"{path} holds an array of shape {points.shape}; a point sequence is (T frames, N "
+            "points, >= 3 coordinates)"
+        )
+    points = np.asarray(points[..., :3], np.float32)
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"{path} has NaN or inf coordinates; repair the file")
+    return points
+
+
+def point_file_keypoints(
+    detector: runs.Detector, path: str | os.PathLike, frames: int, sample_rate: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A point-sequence file's motion as the release's demos take it: `frames` frames from the
+    first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
+    4, the release's episodic normalisation), voxelised, and run through the detector as one
+    crop (its spatio-temporal branch sees their mean).
+
+    Args:
+      detector: the phase-1 detector.
+      path: a (T, N, >= 3) .npy (`load_point_sequence`).
+      frames: F, the crop length.
+      sample_rate: the frame step.
+
+    Returns:
+      keypoints (F, K, 4) and voxels (F, G, G, G).
+
+    Raises:
+      ValueError: the file has fewer than (F - 1) sample_rate + 1 frames.
+    """
+    from nmjax.data.voxelize import normalize_sequence, voxelize
+
+    points = load_point_sequence(path)
+    span = (frames - 1) * sample_rate + 1
+    if len(points) < span:
+        raise ValueError(
+            f"{path} has {len(points)} frames; {frames} frames every {sample_rate} need {span} "
+            "(ask for fewer frames or a smaller --source-rate)"
+        )
+    clip, _ = normalize_sequence(points[:span:sample_rate])
+    voxels = voxelize(clip, detector.cfg.data.grid)
+    # One crop: a batch of one instead of the training batch the detector pads to.
+    one = dataclasses.replace(
+        detector.cfg, data=dataclasses.replace(detector.cfg.data, batch_size=1)
+    )
+    single = runs.Detector(detector.run, one, detector.graphdef, detector.state)
+    return single.keypoints(voxels[None])[0], voxels
+
+
+def source_file_clip(
+    skel_run: Path, path: str | os.PathLike, frames: int, sample_rate: int | None
+) -> tuple[str, np.ndarray, np.ndarray]:
+    """(name, keypoints (1, F, K, 4), first voxel frame (1, G, G, G)) of `point_file_keypoints`
+    with the phase-1 run's detector; `sample_rate` None takes the run's."""
+    detector = runs.Detector.load(skel_run)
+    rate = detector.cfg.data.sample_rate if sample_rate is None else sample_rate
+    keypoints, voxels = point_file_keypoints(detector, path, frames, rate)
+    return Path(path).stem, keypoints[None].astype(np.float32), voxels[None, 0]
+
+
 # --- on run folders: the task commands (`nmjax generate`, `interpolate`, `retarget`) ----------
 #
-# Inputs are the test-split keypoint trajectories of the phase-1 run (keypoints_test.npz). Each
-# writes into `out` (default `RUN/<command>`): the keypoints as .npz, a GIF of the motion and a
-# PNG strip of frames; `run_retarget` also writes one .obj per frame.
+# Inputs are test sequences of the phase-1 run, as the phase-2 run was fed (its `inputs`):
+# "crop" runs the phase-1 detector on each clip normalised with its own bounding box, as the
+# release's generation and interpolation demos do; "sequence" cuts the clips from the
+# whole-sequence keypoints_test.npz (`run_retarget` always does). Each writes into `out` (default
+# `RUN/<command>`): the keypoints as .npz, a GIF of the motion and a PNG strip of frames;
+# `run_retarget` also writes one .obj per frame.
 
 
 def pick_inputs(
@@ -451,6 +556,97 @@ def pick_inputs(
     chosen = chosen[:count]
     crops = [common.pad_with_last(trajectories[name][:frames], frames) for name in chosen]
     return chosen, np.stack(crops).astype(np.float32)
+
+
+@dataclasses.dataclass
+class TaskClips:
+    """Observed test clips of a task command, in the coordinates the model is conditioned in.
+
+    Attributes:
+      names: the sequences, one clip each (from frame 0).
+      keypoints: (I, F, K, 4) the clips' keypoints.
+      real_frames: (I,) frames of each clip the sequence really has (the rest repeats its last).
+      first_voxels: (I, G, G, G) each clip's first voxel frame, when asked for (decoding).
+    """
+
+    names: list[str]
+    keypoints: np.ndarray
+    real_frames: np.ndarray
+    first_voxels: np.ndarray | None = None
+
+
+def generation_clips(
+    cfg: DynTrainConfig, skel_run: Path, count: int, cond: int, gen: int, voxels: bool = False
+) -> TaskClips:
+    """Frames 0 .. cond + gen - 1 of the first `count` test sequences, conditioned as trained.
+
+    "sequence": cut from keypoints_test.npz. "crop" (the release's generation): the clip is
+    normalised with the bounding box of its first crop (max(T, cond) frames, T = `cfg.frames`)
+    and voxelised; the conditioning keypoints, keypoints[:, :cond], are its first `cond` frames
+    run through the detector on their own; the frames after them (the true continuation) are
+    detected in consecutive windows of T frames in the same coordinates.
+
+    Args:
+      cfg: the phase-2 run's DynTrainConfig.
+      skel_run: its phase-1 run.
+      count, cond, gen: clips, conditioning frames, generated frames.
+      voxels: also return each clip's first voxel frame.
+    """
+    total = cond + gen
+    if cfg.inputs == "sequence":
+        trajectories = runs.load_trajectories(skel_run, "test")
+        names, observed = pick_inputs(trajectories, count, total)
+        real = np.array([min(len(trajectories[n]), total) for n in names], np.int32)
+        first = None
+        if voxels:
+            detector = runs.Detector.load(skel_run)
+            seqs, data = runs.split_sequences(detector, "test"), detector.cfg.data
+            first = np.stack(
+                [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
+            )
+        return TaskClips(names, observed, real, first)
+    detector = runs.phase2_detector(skel_run)
+    seqs, data = runs.split_sequences(detector, "test"), detector.cfg.data
+    names = sorted(seqs)[:count]
+    box = max(cfg.frames, cond)
+    real = np.array([min(-(-seqs[n].num_frames // data.sample_rate), total) for n in names])
+    observed, first = [], []
+    for name, frames in zip(names, real, strict=True):
+        vox = runs.clip_voxels(seqs[name], 0, max(total, box), data, box_frames=box)[:total]
+        x_cond = detector.keypoints(vox[None, :cond])[0]
+        rest = detector.keypoints(runs.sequence_windows(vox, cfg.frames))
+        rest = rest.reshape(-1, *rest.shape[2:])[:total]
+        clip = np.concatenate([x_cond, rest[cond:]])
+        clip[frames:] = clip[frames - 1]  # past the sequence's end the last real frame is held
+        observed.append(clip)
+        first.append(vox[0])
+    return TaskClips(
+        names,
+        np.stack(observed).astype(np.float32),
+        real.astype(np.int32),
+        np.stack(first) if voxels else None,
+    )
+
+
+def interpolation_clips(cfg: DynTrainConfig, skel_run: Path, count: int, gap: int) -> TaskClips:
+    """Frames 0 .. gap of the first `count` test sequences: the keyframes and the truth between.
+
+    "sequence": cut from keypoints_test.npz. "crop": a clip of max(T, gap + 1) frames from frame
+    0, normalised with its own bounding box and run through the detector as one crop (its first
+    gap + 1 frames kept), as the release's interpolation takes its keyframes.
+    """
+    if cfg.inputs == "sequence":
+        trajectories = runs.load_trajectories(skel_run, "test")
+        names, truth = pick_inputs(trajectories, count, gap + 1)
+        real = np.array([min(len(trajectories[n]), gap + 1) for n in names], np.int32)
+        return TaskClips(names, truth, real)
+    detector = runs.phase2_detector(skel_run)
+    seqs, rate = runs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
+    names = sorted(seqs)[:count]
+    clips = [(seqs[n], 0) for n in names]
+    truth = runs.detect_clips(detector, clips, max(cfg.frames, gap + 1))[:, : gap + 1]
+    real = [min(-(-seqs[n].num_frames // rate), gap + 1) for n in names]
+    return TaskClips(names, truth, np.array(real, np.int32))
 
 
 @dataclasses.dataclass
@@ -491,22 +687,34 @@ def run_generate(
     seed: int = 0,
     voxels: bool = False,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Motion generation for the first `inputs` test sequences; returns the output folder.
 
-    Writes generate.npz (keypoints (I, S, T_cond + T_gen, K, 4), each sample starting with the
-    T_cond observed frames; observed (I, T, K, 4) - those and the true continuation, padded with
-    its last frame where the sequence is shorter (long horizons) - observed_frames (I,) the real
-    frames of it, names, parents), optionally voxels.npz (decoded occupancy of every sample,
-    uint8), and per input a GIF and PNG strip (observed next to the samples).
+    With `source_file` the one input is instead the first `cond` frames (every `source_rate`-th,
+    default the run's sample rate) of that point-sequence file, detected as the release's
+    generation demo does (`point_file_keypoints`); its observed motion holds the last of them.
+
+    The observed frames are taken as the run was trained (`generation_clips`) and inferred with
+    the model's best-of-S posterior samples. Writes generate.npz (keypoints (I, S, T_cond +
+    T_gen, K, 4), each sample starting with the T_cond observed frames; observed (I, T, K, 4) -
+    those and the true continuation, padded with its last frame where the sequence is shorter
+    (long horizons) - observed_frames (I,) the real frames of it, names, parents), optionally
+    voxels.npz (decoded occupancy of every sample, uint8), and per input a GIF and PNG strip
+    (observed next to the samples).
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
-    trajectories = runs.load_trajectories(skel_run, "test")
-    names, observed = pick_inputs(trajectories, inputs, cond + gen)
-    real_frames = np.array([min(len(trajectories[n]), cond + gen) for n in names], np.int32)
+    if source_file is not None:
+        name, x_cond, first = source_file_clip(skel_run, source_file, cond, source_rate)
+        held = np.concatenate([x_cond, np.repeat(x_cond[:, -1:], gen, axis=1)], axis=1)
+        clips = TaskClips([name], held, np.array([cond], np.int32), first)
+    else:
+        clips = generation_clips(cfg, skel_run, inputs, cond, gen, voxels=voxels)
+    names, observed, real_frames = clips.names, clips.keypoints, clips.real_frames
     graphdef, state = nnx.split(model)
     keypoints, _ = generate_jit(
         graphdef,
@@ -527,15 +735,8 @@ def run_generate(
         cond=np.int32(cond),
     )
     if voxels:
-        from nmjax.data.datasets import load_sequences
-
         detector = runs.Detector.load(skel_run)
-        data = detector.cfg.data
-        seqs = {s.name: s for s in load_sequences(data.name, "test", data.root)}
-        first = np.stack(
-            [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
-        )
-        decoded = [detector.decode(keypoints[:, s], first) for s in range(samples)]
+        decoded = [detector.decode(keypoints[:, s], clips.first_voxels) for s in range(samples)]
         atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
@@ -558,17 +759,31 @@ def run_interpolate(
     vrnn_run: str | Path | None = None,
     seed: int = 0,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Interpolation between frames 0 and `gap` of the first `inputs` test sequences.
 
-    Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names, parents) and per input a
-    GIF and PNG strip with one panel per method and the truth.
+    With `source_file` the one input is instead the first gap + 1 frames (every `source_rate`-th,
+    default the run's sample rate) of that point-sequence file, detected as one crop as the
+    release's interpolation demo does (`point_file_keypoints`).
+
+    The keyframes and the truth between them are taken as the run was trained
+    (`interpolation_clips`). Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names,
+    parents) and per input a GIF and PNG strip with one panel per method and the truth.
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "interpolate"
-    names, truth = pick_inputs(runs.load_trajectories(skel_run, "test"), inputs, gap + 1)
+    if vrnn_run is not None:
+        runs.phase2_runs(Path(run), vrnn_run)  # refuses a baseline of another skeleton or input
+    if source_file is not None:
+        name, truth, _ = source_file_clip(skel_run, source_file, gap + 1, source_rate)
+        names = [name]
+    else:
+        clips = interpolation_clips(cfg, skel_run, inputs, gap)
+        names, truth = clips.names, clips.keypoints
     vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
     interp = Interpolators(nnx.split(model), vrnn, trajectories)
     methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
@@ -621,8 +836,15 @@ def run_retarget(
     points: int = 20000,
     seed: int = 0,
     out: str | Path | None = None,
+    source_file: str | Path | None = None,
+    source_rate: int | None = None,
 ) -> Path:
     """Retargets a test motion of the run onto a target mesh (Fig. 6, appendix D.4).
+
+    The source motion is the test sequence `source` (default the first), or with `source_file`
+    the first `frames` frames (every `source_rate`-th, default the run's sample rate) of that
+    point-sequence file, detected as one crop as the release's retargeting demo does
+    (`point_file_keypoints`; the demo takes 40 frames at rate 1).
 
     1. Target skeleton: `points` surface samples of the mesh, normalised (DESIGN section 4),
        voxelised, keypoints by the phase-1 detector; topology = the run's skeleton.
@@ -643,9 +865,14 @@ def run_retarget(
     mesh = load_mesh(target)
     model, cfg, skel_run = runs.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / f"retarget-{Path(target).stem}"
-    trajectories = runs.load_trajectories(skel_run, "test")
-    names = None if source is None else [source]
-    (name,), x_src = pick_inputs(trajectories, 1, frames, names)
+    if source_file is not None:
+        if source is not None:
+            raise ValueError("give either --source NAME or --source-file PATH, not both")
+        name, x_src, _ = source_file_clip(skel_run, source_file, frames, source_rate)
+    else:
+        trajectories = runs.load_trajectories(skel_run, "test")
+        names = None if source is None else [source]
+        (name,), x_src = pick_inputs(trajectories, 1, frames, names)
     skeleton = runs.read_skeleton(skel_run)
     intensities = runs.skeleton_intensities(skel_run)
 

@@ -31,6 +31,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "write a phase-1 run's keypoints_{train,test}.npz (phase 2 reads them)",
     ),
     "train-dyn": ("train", "train_dyn", "phase 2: train the VRNN dynamics on a phase-1 run"),
+    "import-release": (
+        "release",
+        "import_release",
+        "the authors' trained model as a phase-1 and a phase-2 run (no PyTorch)",
+    ),
     "generate": ("tasks", "generate", "sample future motion from a phase-2 run"),
     "interpolate": ("tasks", "interpolate", "interpolate between two keyframes, with baselines"),
     "retarget": ("tasks", "retarget", "retarget a test motion onto a mesh (Eqs. 24-25, LBS)"),

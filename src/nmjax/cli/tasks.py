@@ -5,8 +5,11 @@
     nmjax interpolate --run RUN [--gap 10] [--trajectories 16] [--inputs 2] [--vrnn-run RUN2]
     nmjax retarget    --run RUN --target MESH [--source SEQ] [--frames 30]
 
-Each writes into `--out` (default `RUN/<command>`); see `nmjax.tasks.run_generate`,
-`run_interpolate` and `run_retarget`.
+Each takes its inputs from the phase-1 run's exported test keypoints, or with `--source-file
+POINTS.npy [--source-rate N]` from a point-sequence file (T, N, >= 3) normalised and detected as
+one crop, as the release's demos do (an imported release needs no dataset then). Each writes into
+`--out` (default `RUN/<command>`); see `nmjax.tasks.run_generate`, `run_interpolate` and
+`run_retarget`.
 """
 
 from __future__ import annotations
@@ -19,6 +22,19 @@ def _parser(command: str, description: str) -> Parser:
     p.add_argument("--run", required=True, help="phase-2 run folder (train-dyn, model nm)")
     p.add_argument("--out", default=None, help=f"output folder (default RUN/{command})")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--source-file",
+        default=None,
+        metavar="POINTS.npy",
+        help="take the input motion from this (T, N, >=3) point sequence instead of the test set",
+    )
+    p.add_argument(
+        "--source-rate",
+        type=int,
+        default=None,
+        metavar="N",
+        help="with --source-file: every N-th frame (default: the run's sample rate)",
+    )
     return p
 
 
@@ -30,6 +46,10 @@ def _run(p: Parser, argv: list[str], function: str, positive_options: tuple[str,
     """
     args = p.parse_args(argv)
     positive(p, args, *positive_options)
+    if getattr(args, "source", None) is not None and args.source_file is not None:
+        p.error("give either --source NAME or --source-file PATH, not both")
+    if args.source_rate is not None and args.source_file is None:
+        p.error("--source-rate applies to --source-file only")
     from nmjax import tasks
 
     out = getattr(tasks, function)(**vars(args))
@@ -44,7 +64,7 @@ def generate(argv: list[str]) -> int:
     p.add_argument("--samples", type=int, default=3, help="futures per input")
     p.add_argument("--inputs", type=int, default=2, help="test sequences used as inputs")
     p.add_argument("--voxels", action="store_true", help="also decode voxels (phase-1)")
-    return _run(p, argv, "run_generate", ("cond", "gen", "samples", "inputs"))
+    return _run(p, argv, "run_generate", ("cond", "gen", "samples", "inputs", "source_rate"))
 
 
 def interpolate(argv: list[str]) -> int:
@@ -53,7 +73,7 @@ def interpolate(argv: list[str]) -> int:
     p.add_argument("--trajectories", type=int, default=16, help="rollouts to choose from")
     p.add_argument("--inputs", type=int, default=2, help="test sequences")
     p.add_argument("--vrnn-run", default=None, help="positional VRNN run for the baseline")
-    return _run(p, argv, "run_interpolate", ("gap", "trajectories", "inputs"))
+    return _run(p, argv, "run_interpolate", ("gap", "trajectories", "inputs", "source_rate"))
 
 
 def retarget(argv: list[str]) -> int:
@@ -62,4 +82,4 @@ def retarget(argv: list[str]) -> int:
     p.add_argument("--source", default=None, help="test sequence name (default: first)")
     p.add_argument("--frames", type=int, default=30, help="frames of the source motion")
     p.add_argument("--points", type=int, default=20000, help="points sampled on the mesh")
-    return _run(p, argv, "run_retarget", ("frames", "points"))
+    return _run(p, argv, "run_retarget", ("frames", "points", "source_rate"))

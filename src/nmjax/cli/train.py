@@ -36,10 +36,19 @@ def _distributed_args(p: argparse.ArgumentParser) -> None:
     group.add_argument("--process-id", type=int, default=None, help="this host, 0..N-1")
 
 
-def _common_args(p: Parser, what: str) -> None:
+SKEL_PRESETS_HELP = (
+    "default: the paper's network and the release's recipe (batch 3 of 10 frames at G=64; the "
+    "dataset's epochs: aist, hanco, animals, panda 200, dfaust 2000, an epoch ceil(sequences / "
+    "3) steps; Adam at 4e-4 restarted every epoch, no clipping, 0.25x and 0.1x at the "
+    "dataset's decay epochs); cpu: G=32, C=16, batch 2 of 6 frames, 160 epochs (2,240 steps "
+    "on a synthetic body); tiny: for tests. Ignored with --resume"
+)
+
+
+def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume") -> None:
     from nmjax.config import PRESETS, add_override_argument
 
-    p.add_argument("--preset", default="default", choices=PRESETS, help="ignored with --resume")
+    p.add_argument("--preset", default="default", choices=PRESETS, help=preset_help)
     p.add_argument(
         "--steps",
         type=int,
@@ -115,7 +124,7 @@ def skel_parser() -> Parser:
         help="time the train step first, then train as many steps as fit M minutes of wall "
         "time, the learning-rate milestones at the preset's fractions of the run",
     )
-    _common_args(p, "skel")
+    _common_args(p, "skel", SKEL_PRESETS_HELP)
     return p
 
 
@@ -194,9 +203,12 @@ def dyn_config(args: argparse.Namespace):
         cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=args.model))
     if args.skel_run is not None:
         cfg = dataclasses.replace(cfg, skel_run=args.skel_run)
-    for name in ("steps", "seed", "batch_size", "run"):
+    for name in ("seed", "batch_size", "run"):
         if getattr(args, name) is not None:
             cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
+    if args.steps is not None:  # a new run counts in steps instead of epochs
+        resized = dataclasses.replace(cfg, steps=args.steps)
+        cfg = resized if args.resume else dataclasses.replace(resized, epochs=0)
     return apply_overrides(cfg, args.overrides)
 
 

@@ -14,6 +14,13 @@ Two decoders share the cell:
 - "vrnn" (baseline of Chung et al. / Minderer et al.): the decoder regresses the 4K keypoint values
   directly.
 
+Every choice the paper leaves open is the authors' release's (compared weight for weight, DESIGN
+section 8): LeakyReLU (slope 0.01) in every MLP, PyTorch's GRU cell (`GRUCell`, the hidden bias
+b_hn inside the reset product), bone lengths as torch's median (the lower middle value), a
+learned initial hidden state drawn N(0, 1), and PyTorch's default initialisation of every Linear
+and of the GRU (`torch_uniform`). The phase-2 loss reduces the KL as the release does
+(`nmjax.train.dyn.loss_fn`).
+
 The recurrence runs under `jax.lax.scan` with one key per step split up front. The S posterior
 samples of the best-of-S training rule are decoded together as one extra leading axis (the
 computation `jax.vmap` would produce); forward kinematics always sees one flattened batch axis,
@@ -34,6 +41,7 @@ from nmjax import geometry
 from nmjax.config import DynamicsConfig
 
 STD_EPS = 1e-4  # std = softplus(raw) + 1e-4 (Fig. 11)
+LEAKY_SLOPE = 0.01  # the release's MLPs use LeakyReLU with PyTorch's default negative slope
 MODELS = ("nm", "vrnn")
 IDENTITY_6D = np.array([1, 0, 0, 0, 1, 0], np.float32)  # first two columns (= rows) of I
 
@@ -57,20 +65,36 @@ class StepOutput(NamedTuple):
 def bone_lengths(keypoints: jax.Array, parents: tuple[int, ...] | np.ndarray) -> jax.Array:
     """Bone length of every joint measured on an observed sequence (Eq. 20, released form).
 
-    The paper prints the length in the first frame; the released code takes the median over time
-    of the keypoint-parent distance, which is what this computes.
+    The paper prints the length in the first frame; the released code takes torch's median over
+    time of the keypoint-parent distance (for an even T the lower of the two middle values,
+    `lower_median`), which is what this computes.
 
     Args:
       keypoints: (..., T, K, 4) or (..., T, K, 3) observed keypoints; only xyz is used.
       parents: (K,) parent index of each joint; the root is its own parent (length 0).
 
     Returns:
-      (..., K) lengths ||mu_k - mu_parent(k)||, median over T.
+      (..., K) lengths ||mu_k - mu_parent(k)||, lower median over T.
     """
     mu = keypoints[..., :3]
     parent_mu = jnp.take(mu, jnp.asarray(parents), axis=-2)
     dist = jnp.linalg.norm(mu - parent_mu, axis=-1)  # (..., T, K)
-    return jnp.median(dist, axis=-2)
+    return lower_median(dist, axis=-2)
+
+
+def lower_median(x: jax.Array, axis: int = -1) -> jax.Array:
+    """torch.median's median: for an even count the lower of the two middle values (not their
+    mean, as `jnp.median`), so the result is always one of the values.
+
+    Args:
+      x: (..., N, ...) values.
+      axis: the axis reduced.
+
+    Returns:
+      x with `axis` removed: the ((N - 1) // 2)-th smallest value along it.
+    """
+    middle = (x.shape[axis] - 1) // 2
+    return jnp.take(jnp.sort(x, axis=axis), middle, axis=axis)
 
 
 def gaussian_head(raw: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -79,15 +103,73 @@ def gaussian_head(raw: jax.Array) -> tuple[jax.Array, jax.Array]:
     return mean, jax.nn.softplus(raw_std) + STD_EPS
 
 
+def torch_uniform(fan_in: int) -> nnx.Initializer:
+    """PyTorch's default initialisation of nn.Linear and nn.GRUCell: uniform in +-1/sqrt(fan_in).
+
+    nn.Linear draws its weight with kaiming_uniform(a=sqrt(5)), whose bound
+    sqrt(1/3) sqrt(3 / fan_in) is 1/sqrt(fan_in), and its bias with the same bound; nn.GRUCell
+    draws every weight and bias with bound 1/sqrt(hidden). The release's phase 2 keeps these.
+    """
+    bound = 1.0 / np.sqrt(fan_in)
+
+    def init(key: jax.Array, shape: tuple[int, ...], dtype=jnp.float32) -> jax.Array:
+        return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+    return init
+
+
+def linear(in_features: int, out_features: int, *, rngs: nnx.Rngs) -> nnx.Linear:
+    """nnx.Linear initialised as PyTorch's nn.Linear (`torch_uniform` of its fan-in)."""
+    init = torch_uniform(in_features)
+    return nnx.Linear(in_features, out_features, kernel_init=init, bias_init=init, rngs=rngs)
+
+
 class MLP(nnx.Module):
-    """Linear -> ReLU -> Linear, the shape of every head of Fig. 11."""
+    """Linear -> LeakyReLU(0.01) -> Linear, the shape of every head of Fig. 11 (as released)."""
 
     def __init__(self, in_features: int, hidden: int, out_features: int, *, rngs: nnx.Rngs):
-        self.hidden = nnx.Linear(in_features, hidden, rngs=rngs)
-        self.out = nnx.Linear(hidden, out_features, rngs=rngs)
+        self.hidden = linear(in_features, hidden, rngs=rngs)
+        self.out = linear(hidden, out_features, rngs=rngs)
 
     def __call__(self, x: jax.Array) -> jax.Array:
-        return self.out(jax.nn.relu(self.hidden(x)))
+        return self.out(jax.nn.leaky_relu(self.hidden(x), LEAKY_SLOPE))
+
+
+class GRUCell(nnx.Module):
+    """PyTorch's GRU cell (nn.GRUCell), the recurrence of the release's dynamics module.
+
+        r = sigmoid(W_ir x + W_hr h + b_r)
+        z = sigmoid(W_iz x + W_hz h + b_z)
+        n = tanh(W_in x + b_in + r * (W_hn h + b_hn))
+        h' = (1 - z) n + z h
+
+    flax's GRUCell has no b_hn (its hidden-to-hidden dense carries no bias), which changes n
+    wherever r < 1. PyTorch keeps two biases each for r and z (b_ir + b_hr, b_iz + b_hz); they
+    only enter as a sum, so this cell keeps one of each, drawn as the sum of two PyTorch
+    initialisations so that it starts with the same distribution.
+
+    Attributes:
+      input_kernel: (in, 3H) [W_ir, W_iz, W_in] transposed; input_bias: (3H,) [b_r, b_z, b_in].
+      hidden_kernel: (H, 3H) [W_hr, W_hz, W_hn] transposed; hidden_bias: (H,) b_hn.
+    """
+
+    def __init__(self, in_features: int, hidden: int, *, rngs: nnx.Rngs):
+        init = torch_uniform(hidden)  # nn.GRUCell bounds every tensor by 1/sqrt(hidden)
+        self.hidden = hidden
+        self.input_kernel = nnx.Param(init(rngs.params(), (in_features, 3 * hidden)))
+        self.hidden_kernel = nnx.Param(init(rngs.params(), (hidden, 3 * hidden)))
+        gate_bias = init(rngs.params(), (2 * hidden,)) + init(rngs.params(), (2 * hidden,))
+        self.input_bias = nnx.Param(jnp.concatenate([gate_bias, init(rngs.params(), (hidden,))]))
+        self.hidden_bias = nnx.Param(init(rngs.params(), (hidden,)))
+
+    def __call__(self, h: jax.Array, x: jax.Array) -> jax.Array:
+        """One step: h (..., H), x (..., in) -> h' (..., H)."""
+        xi_r, xi_z, xi_n = jnp.split(x @ self.input_kernel[...] + self.input_bias[...], 3, -1)
+        hh_r, hh_z, hh_n = jnp.split(h @ self.hidden_kernel[...], 3, axis=-1)
+        r = jax.nn.sigmoid(xi_r + hh_r)
+        z = jax.nn.sigmoid(xi_z + hh_z)
+        n = jnp.tanh(xi_n + r * (hh_n + self.hidden_bias[...]))
+        return (1.0 - z) * n + z * h
 
 
 class Dynamics(nnx.Module):
@@ -138,8 +220,9 @@ class Dynamics(nnx.Module):
             self.directions = Buffer(directions)  # \bar d_k of Eq. 20, fixed at initialisation
         else:
             self.keypoint_decoder = MLP(dh + dz, m, x_dim, rngs=rngs)
-        self.rnn = nnx.GRUCell(x_dim + dz, dh, rngs=rngs)
-        self.initial_hidden = nnx.Param(jnp.zeros((dh,)))
+        self.rnn = GRUCell(x_dim + dz, dh, rngs=rngs)
+        # The release's init_kypt_rnn_state: a learned state drawn N(0, 1), not zeros.
+        self.initial_hidden = nnx.Param(jax.random.normal(rngs.params(), (dh,)))
 
     # -- pieces of one step ------------------------------------------------------------------
 
@@ -168,7 +251,7 @@ class Dynamics(nnx.Module):
         y = jnp.tanh(self.global_decoder(hz))  # (..., 3 + K)
         root, alpha = y[..., :3], (y[..., 3:] + 1.0) / 2.0
         # The decoder predicts the 6D vector relative to the identity's [1,0,0, 0,1,0], so an
-        # all-zero output (e.g. every ReLU unit inactive) is the identity instead of a 0/0.
+        # all-zero output is the identity instead of a 0/0.
         rot6d = self.rotation_decoder(hz).reshape(*batch, k, 6) + IDENTITY_6D
         rotations = geometry.rotation_6d_to_matrix(rot6d)
         offsets = jnp.broadcast_to(self.offsets(lengths), (*batch, k, 3))
@@ -195,8 +278,7 @@ class Dynamics(nnx.Module):
     def recur(self, h: jax.Array, x_hat: jax.Array, z: jax.Array) -> jax.Array:
         """h_{t+1} = GRU(h_t, [x_hat_t, z_t])."""
         x_flat = x_hat.reshape(*x_hat.shape[:-2], -1)
-        h_next, _ = self.rnn(h, jnp.concatenate([x_flat, z], axis=-1))
-        return h_next
+        return self.rnn(h, jnp.concatenate([x_flat, z], axis=-1))
 
     def posterior_step(
         self, h: jax.Array, x: jax.Array, lengths: jax.Array, key: jax.Array, samples: int
@@ -289,22 +371,26 @@ class Dynamics(nnx.Module):
         return out.keypoints, out.rotations
 
     def generate(
-        self, x_cond: jax.Array, num_frames: int, key: jax.Array, samples: int = 1
+        self, x_cond: jax.Array, num_frames: int, key: jax.Array, samples: int | None = None
     ) -> tuple[jax.Array, jax.Array]:
         """Motion generation (Sec. 5): T_cond posterior steps, then `num_frames` prior samples.
 
-        Bone lengths are measured on the conditioning frames (Eq. 20), so every generated frame of
-        the "nm" model keeps them exactly.
+        The observed frames are inferred with the training rule, best of S posterior samples per
+        step (the release's generation uses its S = 10). Bone lengths are measured on the
+        conditioning frames (Eq. 20), so every generated frame of the "nm" model keeps them
+        exactly.
 
         Args:
           x_cond: (B, T_cond, K, 4) observed keypoints.
           num_frames: T_gen (static).
           key: PRNG key.
-          samples: S of the best-of-S rule on the observed frames.
+          samples: S of the best-of-S rule on the observed frames (static); default the config's
+            `posterior_samples`, 1 = one posterior sample per step.
 
         Returns:
           keypoints (B, T_cond + T_gen, K, 4) and local rotations (B, T_cond + T_gen, K, 3, 3).
         """
+        samples = self.samples if samples is None else samples
         lengths = bone_lengths(x_cond, self.parents)
         key_cond, key_gen = jax.random.split(key)
         keys_cond = jax.random.split(key_cond, x_cond.shape[1])

@@ -1,14 +1,27 @@
 """Phase 2: train the dynamics module (VRNN) on the keypoint trajectories of a phase-1 run.
 
-Inputs (contract C10, read by `nmjax.runs`) come from a phase-1 run folder: `skeleton.json`
-(parents, root, order) and `keypoints_{train,test}.npz` (one (T_seq,K,4) trajectory per sequence,
-written by the frozen detector). Training crops of T frames are drawn inside the compiled step
-from all valid start frames with the key fold_in(seed key, step), so a resumed run sees exactly
-the batches of an uninterrupted one without saving a data-iterator state. The step and the loop
-are those of phase 1 (`common.train_loop`); only `loss_fn` and the data differ.
+Inputs come from a phase-1 run folder (contract C10, read by `nmjax.runs`): `skeleton.json`
+(parents, root, order) and the frozen detector's keypoints, in one of two forms
+(`DynTrainConfig.inputs`, both a `Phase2Inputs`):
 
-Loss: Eq. 3 (`losses.vrnn_reconstruction`) + kl_weight * Eq. 4 (`losses.kl_diag_gaussians`
-summed over the latent, averaged over batch and time).
+- "crop" (the release's): every T-frame training crop normalised with its own bounding box and
+  run through the detector (`nmjax.runs.crop_inputs`, laid out by `crop_inputs_of`). The
+  keypoints of a crop depend on nothing but its start frame (the detector is frozen, phase 2
+  does not augment), so they are computed once per start before training instead of by a
+  detector forward inside every step: the inputs the release's step computes, at the cost of one
+  detector pass over every crop instead of one per step and crop.
+- "sequence": crops cut from the whole-sequence trajectories of `keypoints_{train,test}.npz`
+  (`sequence_inputs`), the named fast route that needs no detector.
+
+Training crops are drawn inside the compiled step from the crop table with the key
+fold_in(seed key, step), so a resumed run sees exactly the batches of an uninterrupted one without
+saving a data-iterator state. The step and the loop are those of phase 1 (`common.train_loop`);
+only `loss_fn` and the data differ.
+
+Loss: Eq. 3 (`losses.vrnn_reconstruction`) + kl_weight * Eq. 4, the KL reduced as the authors'
+release reduces it: the mean over batch, time and latent dimension of the per-dimension KL
+(`losses.kl_diag_gaussians(..., axis=None)`), with the released weight 0.003. Summing over the
+D_z latent dimensions instead would weigh the KL D_z times more (128 at the paper's size).
 """
 
 from __future__ import annotations
@@ -18,7 +31,7 @@ import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +40,7 @@ import optax
 from flax import nnx
 
 from nmjax import losses
-from nmjax.config import DynTrainConfig
+from nmjax.config import DYN_INPUTS, DynTrainConfig
 from nmjax.models.dynamics import Dynamics
 from nmjax.train import common, parallel
 
@@ -73,6 +86,53 @@ def validation_crops(trajectories: dict[str, np.ndarray], frames: int) -> np.nda
     return poses[starts[:, None] + np.arange(frames)]
 
 
+class Phase2Inputs(NamedTuple):
+    """What phase 2 trains and validates on, whichever `DynTrainConfig.inputs` made it.
+
+    Attributes:
+      poses: (F, K, 4) crop table; starts: (S,) int32, `poses[s:s + T]` is a training crop for
+        every s in starts (`sample_crops` draws them uniformly).
+      val: (V, T, K, 4) validation crops.
+      val_cond: (V, T_cond, K, 4) the keypoints the validation generation conditions on
+        (T_cond = `condition_frames(T)`).
+    """
+
+    poses: np.ndarray
+    starts: np.ndarray
+    val: np.ndarray
+    val_cond: np.ndarray
+
+
+def sequence_inputs(trajectories: dict[str, dict[str, np.ndarray]], frames: int) -> Phase2Inputs:
+    """The "sequence" route: crops cut from whole-sequence trajectories.
+
+    Args:
+      trajectories: {"train": ..., "test": ...}, each {sequence: (T_seq, K, 4)} as in
+        keypoints_<split>.npz.
+      frames: T.
+
+    Returns:
+      every start of `crop_table` on the training split; `validation_crops` of the test split,
+      conditioned on their own first T_cond frames.
+    """
+    poses, starts = crop_table(trajectories["train"], frames)
+    val = validation_crops(trajectories["test"], frames)
+    return Phase2Inputs(poses, starts, val, val[:, : condition_frames(frames)])
+
+
+def crop_inputs_of(crops: np.ndarray, val: np.ndarray, val_cond: np.ndarray) -> Phase2Inputs:
+    """The "crop" route: a table of precomputed crops (C, T, K, 4), one start per crop.
+
+    The crops are laid end to end in time, so the step samples them exactly as it samples
+    windows of whole sequences (starts 0, T, 2T, ...).
+    """
+    count, frames = crops.shape[:2]
+    poses = np.asarray(crops, np.float32).reshape(count * frames, *crops.shape[2:])
+    starts = (np.arange(count) * frames).astype(np.int32)
+    val, val_cond = np.asarray(val, np.float32), np.asarray(val_cond, np.float32)
+    return Phase2Inputs(poses, starts, val, val_cond)
+
+
 # --- loss and step ----------------------------------------------------------------------------
 
 
@@ -81,12 +141,17 @@ def loss_fn(
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """Eq. 3 + kl_weight * Eq. 4 on a batch x (B, T, K, 4) with best-of-S posterior samples.
 
-    The metrics also hold `last_pose`, Eq. 3 of predicting x_t by x_{t-1} on the same batch
-    (frames 2..T): the trivial baseline the reconstruction is compared with.
+    Eq. 4's KL enters as the release computes it: the per-dimension KL of
+    `losses.kl_diag_gaussians` averaged over batch, time and the D_z latent dimensions (not summed
+    over them). The metrics also hold `last_pose`, Eq. 3 of predicting x_t by x_{t-1} on the same
+    batch (frames 2..T): the trivial baseline the reconstruction is compared with.
     """
     out = model(x, key)
     recon = losses.vrnn_reconstruction(x, out.keypoints)
-    kl = jnp.mean(losses.kl_diag_gaussians(out.mean_q, out.std_q, out.mean_p, out.std_p))
+    per_dimension = losses.kl_diag_gaussians(
+        out.mean_q, out.std_q, out.mean_p, out.std_p, axis=None
+    )  # (B, T, D_z)
+    kl = jnp.mean(per_dimension)
     total = recon + kl_weight * kl
     last_pose = jax.lax.stop_gradient(losses.vrnn_reconstruction(x[:, 1:], x[:, :-1]))
     return total, {"loss": total, "recon": recon, "kl": kl, "last_pose": last_pose}
@@ -169,15 +234,22 @@ def condition_frames(frames: int) -> int:
 
 
 def evaluate(
-    model: Dynamics, x: jax.Array, key: jax.Array
+    model: Dynamics, x: jax.Array, x_cond: jax.Array, key: jax.Array
 ) -> tuple[dict[str, jax.Array], jax.Array]:
     """Validation errors on crops x (V, T, K, 4), each next to a trivial baseline.
 
     - recon: posterior reconstruction (one sample, no best-of-S), frames 2..T;
       recon_best: the same with the training rule, best of S samples per step;
       last_pose: predicting x_t by x_{t-1} on the same frames.
-    - gen: prior rollout after T_cond = T/4 observed frames, error on the generated frames;
-      gen_hold: holding the last observed pose over the same frames.
+    - gen: the T_cond = T/4 conditioning frames x_cond inferred with best-of-S posterior samples
+      (as generation does), then a prior rollout; error on the generated frames against x;
+      gen_hold: holding the last conditioning pose over the same frames.
+
+    Args:
+      x: (V, T, K, 4) validation crops.
+      x_cond: (V, T_cond, K, 4) their conditioning keypoints: x[:, :T_cond] on the "sequence"
+        route, the crop's first T_cond frames detected on their own on the "crop" route.
+      key: PRNG key.
 
     Returns:
       (metrics, generated keypoints (V, T, K, 4): T_cond observed then generated frames).
@@ -185,10 +257,10 @@ def evaluate(
     key_rec, key_best, key_gen = jax.random.split(key, 3)
     recon, _ = model.reconstruct(x, key_rec, samples=1)
     recon_best, _ = model.reconstruct(x, key_best, samples=model.samples)
-    t_cond = condition_frames(x.shape[1])
-    generated, _ = model.generate(x[:, :t_cond], x.shape[1] - t_cond, key_gen)
+    t_cond = x_cond.shape[1]
+    generated, _ = model.generate(x_cond, x.shape[1] - t_cond, key_gen)
     future = x[:, t_cond:]
-    hold = jnp.broadcast_to(x[:, t_cond - 1 : t_cond], future.shape)
+    hold = jnp.broadcast_to(x_cond[:, -1:], future.shape)
     error = losses.vrnn_reconstruction  # Eq. 3's per-frame error, as in training
     metrics = {
         "recon": error(x[:, 1:], recon[:, 1:]),
@@ -201,9 +273,9 @@ def evaluate(
 
 
 @functools.partial(jax.jit, static_argnames="graphdef")
-def eval_step(state, x, key, *, graphdef):
+def eval_step(state, x, x_cond, key, *, graphdef):
     """Compiled `evaluate`: (metrics, generated keypoints (T, K, 4) of the first crop)."""
-    metrics, generated = evaluate(nnx.merge(graphdef, state["model"]), x, key)
+    metrics, generated = evaluate(nnx.merge(graphdef, state["model"]), x, x_cond, key)
     return metrics, generated[0]
 
 
@@ -216,14 +288,29 @@ def default_run_dir(cfg: DynTrainConfig) -> Path:
 
 def check_config(cfg: DynTrainConfig) -> None:
     """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
-    common.check_positive(cfg, ("steps", "batch_size", "frames", "log_every", "val_every"))
-    common.check_positive(cfg, ("ckpt_every",))
+    common.check_positive(cfg, ("batch_size", "frames", "log_every", "val_every", "ckpt_every"))
+    common.check_schedule(cfg)
+    if cfg.inputs not in DYN_INPUTS:
+        raise ValueError(
+            f"inputs = {cfg.inputs!r} is not a phase-2 input; valid inputs: {', '.join(DYN_INPUTS)}"
+        )
+
+
+def check_inputs(inputs: Phase2Inputs, num_keypoints: int) -> None:
+    """Refuses inputs whose keypoint count differs from the skeleton's (`nmjax.runs` checks the
+    phase-1 run's files before a run folder is made; this guards other callers)."""
+    k = {inputs.poses.shape[1], inputs.val.shape[2], inputs.val_cond.shape[2]}
+    if k != {num_keypoints}:
+        raise ValueError(
+            f"the phase-2 inputs have K={sorted(k)} keypoints but the skeleton has "
+            f"{num_keypoints} joints; give inputs and skeleton of the same phase-1 run"
+        )
 
 
 def train(
     cfg: DynTrainConfig,
     skeleton: tuple[tuple[int, ...], tuple[int, ...]],
-    trajectories: dict[str, dict[str, np.ndarray]],
+    inputs: Callable[[], Phase2Inputs],
     *,
     resume: bool = False,
     progress: bool = True,
@@ -235,8 +322,8 @@ def train(
       cfg: the configuration; `cfg.skel_run` names the phase-1 run the inputs come from (stored
         in config.json, so later tasks rebuild the model from the run folder alone).
       skeleton: (parents, order) of the phase-1 run (`nmjax.runs.read_skeleton`).
-      trajectories: {"train": ..., "test": ...} keypoint trajectories {sequence: (T_seq, K, 4)}
-        (`nmjax.runs.load_trajectories`).
+      inputs: makes the `Phase2Inputs` (`sequence_inputs`, or `nmjax.runs.crop_inputs` with its
+        detector passes); called once the run folder is accepted, so a refused run costs nothing.
       resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
         `cfg` only in `common.RESUMABLE_FIELDS`.
       progress: show a tqdm bar.
@@ -246,29 +333,22 @@ def train(
       NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
     """
     check_config(cfg)
+    if cfg.epochs > 0 and not cfg.steps_per_epoch:
+        raise ValueError(
+            "dyn.train: a schedule in epochs needs its steps resolved from the training set "
+            "first (config.resolve_epochs; nmjax.runs.train_dynamics does it)"
+        )
     parents, order = skeleton
-    for split, traj in trajectories.items():
-        k = {x.shape[1] for x in traj.values()}
-        if k != {len(parents)}:
-            raise ValueError(
-                f"{cfg.skel_run}/keypoints_{split}.npz has K={sorted(k)} keypoints but "
-                f"skeleton.json has {len(parents)} joints; re-export the keypoints with "
-                f"`nmjax export-keypoints --run {cfg.skel_run}`"
-            )
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
     run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
+    data = inputs()
+    check_inputs(data, len(parents))
 
     # Every host holds the whole crop table and validation set: replicated global arrays.
-    poses, starts, val_x, base_key, val_key = parallel.replicate(
-        (
-            *crop_table(trajectories["train"], cfg.frames),
-            validation_crops(trajectories["test"], cfg.frames),
-            jax.random.key(cfg.seed),
-            jax.random.key(cfg.seed + 1),
-        ),
-        mesh,
+    poses, starts, val_x, val_cond, base_key, val_key = parallel.replicate(
+        (*data, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
     )
     graphdef, state = build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
@@ -279,7 +359,7 @@ def train(
         return step_fn(state, poses, starts, base_key, np.int32(step))
 
     def validate(step: int, state: Any) -> dict[str, float]:
-        metrics, generated = eval_step(state, val_x, val_key, graphdef=graphdef)
+        metrics, generated = eval_step(state, val_x, val_cond, val_key, graphdef=graphdef)
         scalars = {f"val/{k}": float(v) for k, v in metrics.items()}
         history.append({"step": step, **scalars})
         if parallel.is_primary():
@@ -290,7 +370,7 @@ def train(
                 np.asarray(val_x[0]),
                 np.asarray(generated),
                 parents,
-                condition_frames(cfg.frames),
+                val_cond.shape[1],
             )
         return scalars
 

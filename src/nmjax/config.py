@@ -303,9 +303,9 @@ PRESETS = ("default", "cpu", "tiny")
 OPTIMIZER_RESETS = ("epoch", "never")
 
 # The `cpu` preset's length in epochs: at the synthetic sets' 27 training sequences and B = 2 (14
-# steps an epoch) about the 2,200 steps the preset trained before it counted epochs (their wall
-# time on 2 cores: experiments/results/NOTES.md, "Sessions 9-10"). Its decays sit at the same
-# fractions of the run as the dataset's own (`cpu_decay_epochs`).
+# steps an epoch) about the 2,200 steps the preset trained before it counted epochs (the wall
+# time of such a run on 2 cores: experiments/results/archive/train_skel_synth-arm.json). Its
+# decays sit at the same fractions of the run as the dataset's own (`cpu_decay_epochs`).
 CPU_EPOCHS = 160
 
 
@@ -430,7 +430,8 @@ def with_steps(cfg: SkelTrainConfig, steps: int) -> SkelTrainConfig:
 
 # Share of a fitted budget kept for what is not a train step: compiling, validations, figures,
 # checkpoints and the final export; above the share the 6,000-step synth-hand cpu run spent on
-# them (its wall time against its steps' time: experiments/results/train_skel_synth-hand.json).
+# them (its wall time against its steps' time: experiments/results/archive/
+# train_skel_synth-hand.json).
 FIT_OVERHEAD = 0.08
 
 

@@ -104,7 +104,7 @@ def _run(tx, grads):
 def test_learning_rate_on_both_sides_of_each_decay():
     # Constant gradients: Adam's normalised step is 1 in every coordinate, so |update| = rate,
     # with or without restarts.
-    for period in (0, 3):
+    for period in (None, 0, 3):
         tx = common.make_optimizer(0.1, (4, 7), (0.25, 0.1), restart_period=period)
         updates, _ = _run(tx, jnp.ones((9, 2)))
         np.testing.assert_allclose(
@@ -136,7 +136,10 @@ def test_no_clipping_by_default_and_clipping_as_an_option():
     tx = optax.chain(common.make_optimizer(1.0, clip_norm=1.0))
     assert common.make_optimizer(1.0, clip_norm=0.0).init(big[0]) != tx.init(big[0])
     with pytest.raises(ValueError, match="period"):
-        common.restart_every(optax.scale_by_adam(), 0)
+        common.restart_every(optax.scale_by_adam(), -1)
+    # Epochs not counted yet: the restarting layout, no restart.
+    never, _ = _run(common.make_optimizer(1.0, restart_period=0), jnp.ones((4, 2)) * 3.0)
+    np.testing.assert_allclose(never[-1], -1.0, rtol=1e-4)
 
 
 @pytest.mark.parametrize("data", sorted(RELEASE_EPOCHS))

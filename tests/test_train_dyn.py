@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from flax import nnx
 from tiny_configs import small_skel_config
+from tiny_runs import spread_convolutions
 
 from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
@@ -296,7 +297,9 @@ def translated_body(frames: int = 9) -> Sequence:
 
 def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_path):
     cfg = small_skel_config(tmp_path)  # an untrained detector: G=8, K=4, phase-1 T=3
-    detector = runs.Detector.of(KeypointDetector(cfg.model, rngs=nnx.Rngs(0)), cfg, tmp_path)
+    model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
+    spread_convolutions(model)  # keypoints that follow the body, as a trained detector's do
+    detector = runs.Detector.of(model, cfg, tmp_path)
     seq, frames, grid = translated_body(), 4, cfg.data.grid
     crop = runs.crop_inputs(detector, [seq], [seq], frames, progress=False)
     assert list(crop.starts) == [

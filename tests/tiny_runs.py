@@ -18,6 +18,8 @@ ORDER = (0, 1, 2, 4, 3, 5)
 def make_runs(root: Path) -> dict[str, Path]:
     """{"data", "skel", "nm", "vrnn"} folders under `root`: a 3-sequence synth-arm set (12 frames
     each), a tiny phase-1 run (G=16, K=6) and its "nm" and "vrnn" phase-2 runs."""
+    from flax import nnx
+
     from nmjax import runs
     from nmjax.config import dyn_preset, skel_preset
     from nmjax.data import synthetic
@@ -31,7 +33,10 @@ def make_runs(root: Path) -> dict[str, Path]:
     cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=str(data)))
     assert cfg.model.num_keypoints == len(PARENTS)
     skel_run = common.prepare_run_dir(root / "skel-synth-arm-tiny", resume=False, config=cfg)
-    _, state = skel.build(cfg)
+    graphdef, state = skel.build(cfg)
+    detector = nnx.merge(graphdef, state["model"])
+    spread_convolutions(detector)
+    state["model"] = nnx.state(detector)
     ckpt = common.Checkpointer(skel_run / "checkpoints", 1, best_metric=skel.BEST_METRIC)
     ckpt.save(1, state, metrics={skel.BEST_METRIC: 1.0})
     ckpt.close()
@@ -58,3 +63,29 @@ def make_runs(root: Path) -> dict[str, Path]:
             c.save(1, dstate)
         runs[kind] = run
     return runs
+
+
+def spread_convolutions(model) -> None:
+    """Redraws every convolution kernel of the detector `model` (in place) at unit fan-in scale
+    and makes its heatmap fusion sharp.
+
+    At the released initialisation (N(0, 0.001) in the feature nets) an untrained detector puts
+    every keypoint in one spot whatever its input, so bone lengths are ~0 and keypoints do not
+    follow the body; a trained detector's keypoints are spread and do. Unit-scale kernels give
+    such keypoints without training.
+    """
+    import jax
+    import jax.numpy as jnp
+    from flax import nnx
+
+    from nmjax.models.blocks import Conv3D
+
+    for i, (_, module) in enumerate(nnx.iter_modules(model)):
+        if isinstance(module, Conv3D):
+            shape = module.kernel[...].shape
+            scale = 1.0 / np.sqrt(np.prod(shape[:-1]))
+            module.kernel[...] = jax.random.normal(jax.random.key(i), shape) * scale
+    # The heatmap fusion too: weights of 0.02 leave softplus near its constant 0.69, every heatmap
+    # flat and every keypoint at the centre.
+    model.fuse.kernel[...] = jnp.asarray([[2.0], [1.0]])
+    model.fuse.bias[...] = jnp.asarray([-2.0])

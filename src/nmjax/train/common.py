@@ -101,21 +101,22 @@ class RestartState(NamedTuple):
 
 def restart_every(inner: optax.GradientTransformation, period: int) -> optax.GradientTransformation:
     """`inner` with its state created anew before every `period`-th update (updates period,
-    2 period, ...): as if the optimizer were built afresh at each epoch boundary, which is how
+    2 period, ...; never for period 0, which keeps the state's layout for a run whose epochs are
+    not counted yet): as if the optimizer were built afresh at each epoch boundary, which is how
     the release trains (a new `torch.optim.Adam` every epoch: moments and bias correction start
     over). Inside a compiled step the choice is a `jnp.where` over the state, so the step is
     compiled once and a resumed run restarts at the same updates as a straight one.
 
     `inner.init` is called on the updates, which have the parameters' structure and shapes.
     """
-    if period < 1:
-        raise ValueError(f"restart_every: period must be >= 1, got {period}")
+    if period < 0:
+        raise ValueError(f"restart_every: period must be >= 0 (0: never), got {period}")
 
     def init(params):
         return RestartState(inner.init(params), jnp.zeros([], jnp.int32))
 
     def update(updates, state, params=None):
-        restart = (state.count > 0) & (state.count % period == 0)
+        restart = (state.count > 0) & (state.count % max(period, 1) == 0) & (period > 0)
         fresh = inner.init(updates)
         inner_state = jax.tree.map(lambda f, o: jnp.where(restart, f, o), fresh, state.inner)
         updates, inner_state = inner.update(updates, inner_state, params)
@@ -129,7 +130,7 @@ def make_optimizer(
     milestones: tuple[int, ...] = (),
     decay: tuple[float, ...] = (),
     clip_norm: float | None = None,
-    restart_period: int = 0,
+    restart_period: int | None = None,
 ) -> optax.GradientTransformation:
     """Optional clipping by global norm, then Adam with a piecewise-constant learning rate.
 
@@ -144,7 +145,8 @@ def make_optimizer(
       milestones: increasing optimizer steps at which the rate changes.
       decay: factor of the initial rate from each milestone on; same length as `milestones`.
       clip_norm: maximum global gradient norm; None or <= 0 disables clipping.
-      restart_period: steps per epoch when Adam restarts each epoch; 0: never.
+      restart_period: steps per epoch when Adam restarts each epoch (0: not counted yet, the
+        state laid out for it but never restarted); None: one Adam state for the run.
 
     Returns:
       An optax transformation.
@@ -166,7 +168,7 @@ def make_optimizer(
         learning_rate, dict(zip(milestones, ratios, strict=True))
     )
     moments = optax.scale_by_adam()
-    if restart_period > 0:
+    if restart_period is not None:
         moments = restart_every(moments, restart_period)
     parts = [moments, optax.scale_by_learning_rate(schedule)]
     if clip_norm is not None and clip_norm > 0:
@@ -185,7 +187,9 @@ class OptimizerSettings:
     decay: tuple[float, ...] = ()
     clip_norm: float | None = None
     ema_decay: float = 0.0  # > 0: keep an average of the weights (`ema_weights`); 0: none
-    restart_period: int = 0  # > 0: Adam restarts every that many steps (`restart_every`)
+    # Adam restarts every that many steps (`restart_every`; 0 until the epochs are counted);
+    # None: one Adam state for the run.
+    restart_period: int | None = None
 
     @classmethod
     def of(cls, cfg: Any) -> OptimizerSettings:
@@ -193,13 +197,14 @@ class OptimizerSettings:
 
         The epochs must be resolved (`config.resolve_epochs`) for the restarts and decays to be
         in it: a configuration that is not (a benchmark of the step) gets the decays that are
-        already in steps and no restart.
+        already in steps and the restarting state's layout without restarts, so its checkpoints
+        have the layout of the resolved run's.
         """
         milestones = tuple(getattr(cfg, "lr_milestones", ()))
         decay = tuple(getattr(cfg, "lr_decay", ()))[: len(milestones)]
         ema_decay = float(getattr(cfg, "ema_decay", 0.0))
         reset = getattr(cfg, "optimizer_reset", "never")
-        period = cfg.steps_per_epoch if reset == "epoch" else 0
+        period = cfg.steps_per_epoch if reset == "epoch" else None
         return cls(cfg.learning_rate, milestones, decay, cfg.clip_norm, ema_decay, period)
 
     def make(self) -> optax.GradientTransformation:

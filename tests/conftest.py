@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import gc
+import os
 
 import pytest
+
+# `make test` runs two pytest workers; on a GPU, JAX's default of taking 75% of the device's
+# memory at start-up in each process would leave the second worker without any. Read when the
+# backend starts, so set before any test computes.
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -123,10 +123,10 @@ def test_every_op_in_every_form_equals_its_native_form_in_value_and_gradient(op,
     y = ck.conv3d_native(x, w, op)
     cotangent = jnp.asarray(rng.normal(size=y.shape), jnp.float32)
 
-    def grads(fn):
-        return jax.grad(lambda x, w: jnp.sum(fn(x, w) * cotangent), argnums=(0, 1))(x, w)
+    def grads(fn):  # compiled as one program: op by op, Winograd's many small steps are slow
+        return jax.jit(jax.grad(lambda x, w: jnp.sum(fn(x, w) * cotangent), argnums=(0, 1)))(x, w)
 
-    got = ck.conv3d(x, w, op, evaluation)
+    got = jax.jit(ck.conv3d, static_argnums=(2, 3))(x, w, op, evaluation)
     assert got.shape == y.shape and got.dtype == jnp.float32
     scale = float(jnp.max(jnp.abs(y)))
     np.testing.assert_allclose(got, y, atol=2e-5 * scale, err_msg=f"{op} {form}")
@@ -203,8 +203,8 @@ def test_conv3d_same_forms_agree_in_value_and_gradient(kernel):
     ):
         conv = functools.partial(ck.conv3d_same, form=form)
         assert _conv_count(conv, x, w) == convs, form
-        grads = jax.grad(loss, argnums=(0, 1))(x, w, form)
-        results[form] = (conv(x, w), *grads)
+        grads = jax.jit(jax.grad(loss, argnums=(0, 1)), static_argnums=2)(x, w, form)
+        results[form] = (jax.jit(conv)(x, w), *grads)
     for form in ck.CPU_FORMS:
         for got, want in zip(results[form], results["native"], strict=True):
             if form == "winograd" and kernel == 3:  # about 1e-5 of the largest value
@@ -257,8 +257,8 @@ def test_winograd_conv_matches_float64_in_value_and_gradient(shape):
         return jnp.sum(ck.winograd_conv3d_valid(x, w) * cotangent)
 
     padded32, w32 = jnp.asarray(padded, jnp.float32), jnp.asarray(w, jnp.float32)
-    got = ck.winograd_conv3d_valid(padded32, w32)
-    got_grads = jax.grad(loss, (0, 1))(padded32, w32)
+    got = jax.jit(ck.winograd_conv3d_valid)(padded32, w32)
+    got_grads = jax.jit(jax.grad(loss, (0, 1)))(padded32, w32)
     want = _reference_conv_same(x, w)
     np.testing.assert_allclose(got, want, atol=2e-5 * np.abs(want).max())
     # the gradient of sum(conv * cotangent): wrt the padded input a correlation of the
@@ -302,7 +302,7 @@ def test_upsample_conv_equals_upsampling_then_convolving(form, shape):
     w = rng.normal(size=(3, 3, 3, shape[-1], 2)).astype(np.float32)
     fine = np.asarray(ck.upsample_trilinear(jnp.asarray(x)))
     expected = ck.space_to_depth(jnp.asarray(_reference_conv_same(fine, w), jnp.float32))
-    got = ck.upsample_conv3d_blocks(jnp.asarray(x), jnp.asarray(w), form)
+    got = jax.jit(ck.upsample_conv3d_blocks, static_argnums=2)(jnp.asarray(x), jnp.asarray(w), form)
     np.testing.assert_allclose(got, expected, atol=1e-4)
 
 
@@ -353,6 +353,7 @@ def test_group_norm_equals_its_native_form_in_value_and_gradient(shape, groups):
     fast = functools.partial(ck.group_norm, groups=groups, eps=1e-5)
     plain = functools.partial(ck.group_norm_native, groups=groups, eps=1e-5)
 
+    @functools.partial(jax.jit, static_argnums=0)  # one program, not op by op
     def value_and_grads(fn):
         return fn(x, scale, bias), jax.grad(
             lambda *a: jnp.sum(fn(*a) * cotangent), argnums=(0, 1, 2)

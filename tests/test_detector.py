@@ -42,7 +42,7 @@ def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms():
             outputs = nnx.merge(graphdef, params)(voxels)
             return losses.skeleton_loss({"voxels": voxels, **outputs}, cfg.weights)[0]
 
-        return jax.value_and_grad(loss)(params)
+        return jax.jit(jax.value_and_grad(loss))(params)
 
     results = {form: value_and_grad(form) for form in ("native", "auto")}
     (v0, g0), (v1, g1) = results["native"], results["auto"]
@@ -118,6 +118,11 @@ def test_hourglass_levels():
     assert blocks.hourglass_levels(2, 0) == 0
 
 
+# The detector's forward pass compiled as one program: run op by op, its thousands of small
+# operations each compile on their own, which takes minutes.
+_forward = nnx.jit(lambda model, voxels: model(voxels))
+
+
 @pytest.fixture(scope="module", params=[4, 2], ids=["stride4", "stride2"])
 def tiny_outputs(request):
     cfg = skel_preset("synth-arm", "tiny")
@@ -127,7 +132,7 @@ def tiny_outputs(request):
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
     b, t, g = cfg.data.batch_size, cfg.data.frames, cfg.model.grid
     voxels = (jax.random.uniform(jax.random.key(1), (b, t, g, g, g)) > 0.8).astype(jnp.float32)
-    return cfg, model, voxels, model(voxels)
+    return cfg, model, voxels, _forward(model, voxels)
 
 
 def test_detector_output_shapes_and_ranges(tiny_outputs):
@@ -159,7 +164,7 @@ def test_decoder_is_relative_to_first_frame(tiny_outputs):
     model = nnx.clone(model)
     model.decoder.out.kernel[...] = jnp.zeros_like(model.decoder.out.kernel[...])
     model.decoder.out.bias[...] = jnp.zeros_like(model.decoder.out.bias[...])
-    recon = np.asarray(model(voxels)["recon"])
+    recon = np.asarray(_forward(model, voxels)["recon"])
     # raw = 0 -> v_hat_t = sigmoid(10 (v_1 - 0.5)) for every frame t (Eq. 7 with tanh(0) = 0).
     v1 = np.asarray(voxels[:, :1])
     expected = 1.0 / (1.0 + np.exp(-cfg.model.decoder_sharpness * (v1 - 0.5)))
@@ -171,7 +176,7 @@ def test_frames_are_independent_except_through_temporal_mean(tiny_outputs):
     # Swapping two frames (t >= 1) keeps the temporal mean and frame 1: outputs swap with them.
     perm = np.arange(voxels.shape[1])
     perm[[1, 2]] = perm[[2, 1]]
-    swapped = model(voxels[:, perm])
+    swapped = _forward(model, voxels[:, perm])
     np.testing.assert_allclose(swapped["keypoints"], out["keypoints"][:, perm], atol=1e-5)
     np.testing.assert_allclose(swapped["recon"], out["recon"][:, perm], atol=1e-5)
 

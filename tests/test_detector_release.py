@@ -98,13 +98,19 @@ def test_hourglass_has_a_residual_block_before_every_upsampling():
     assert [u.conv.kernel[...].shape[3:] for u in hg.up] == [(72, 48), (48, 32), (32, 64)]
     # res, up, + skip at every level, computed in that order.
     x = _rand(4, (1, 16, 16, 16, 64)) * 0.1
-    skips, y = [], x
-    for down, skip in zip(hg.down, hg.skips, strict=True):
-        skips.append(skip(y))
-        y = down(y)
-    for res, up, skip in zip(hg.up_res, hg.up, reversed(skips), strict=True):
-        y = up(res(y)) + skip
-    np.testing.assert_allclose(hg(x), y, rtol=1e-5, atol=1e-6)
+
+    @nnx.jit  # one compiled program each: op by op, the hourglass takes minutes
+    def by_hand(hg, x):
+        skips, y = [], x
+        for down, skip in zip(hg.down, hg.skips, strict=True):
+            skips.append(skip(y))
+            y = down(y)
+        for res, up, skip in zip(hg.up_res, hg.up, reversed(skips), strict=True):
+            y = up(res(y)) + skip
+        return y
+
+    whole = nnx.jit(lambda hg, x: hg(x))(hg, x)
+    np.testing.assert_allclose(whole, by_hand(hg, x), rtol=1e-5, atol=1e-6)
 
 
 def test_groupnorm_epsilon_is_pytorchs_default(default_detector):
@@ -122,15 +128,20 @@ def test_heads_can_go_negative_while_the_fused_heatmap_stays_positive():
     cfg = skel_preset("synth-arm", "tiny").model
     model = KeypointDetector(cfg, rngs=nnx.Rngs(0))
     voxels = (jax.random.uniform(jax.random.key(5), (1, 4, 16, 16, 16)) > 0.7).astype(jnp.float32)
-    feats = model.features(voxels[0])
-    head = np.asarray(nnx.leaky_relu(model.heat(feats), blocks.LEAK))
+
+    @nnx.jit  # one compiled program: op by op, the detector's many operations take minutes
+    def head_and_fused(model, voxels):
+        head = nnx.leaky_relu(model.heat(model.features(voxels[0])), blocks.LEAK)
+        return head, model.detect(voxels)[0]
+
+    head, heatmaps = head_and_fused(model, voxels)
+    head = np.asarray(head)
     assert (head < 0).any()
-    heatmaps, _, _ = model.detect(voxels)
     assert np.all(np.asarray(heatmaps) > 0)
     # The head ends in the LeakyReLU: exactly the detector's frame branch before the fusion.
     model.fuse.kernel[...] = jnp.asarray([[1.0], [0.0]])
     model.fuse.bias[...] = jnp.zeros(1)
-    fused, _, _ = model.detect(voxels)
+    fused = head_and_fused(model, voxels)[1]
     np.testing.assert_allclose(
         np.asarray(fused[0]), np.asarray(jax.nn.softplus(jnp.asarray(head))), rtol=1e-5, atol=1e-6
     )

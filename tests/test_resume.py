@@ -119,8 +119,12 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     config = json.loads((run / common.CONFIG_FILE).read_text())
     assert config == {**config_before, "steps": 4, "val_every": 4}
 
-    def poison(step, state):  # before the second step, every parameter becomes NaN
-        return jax.tree.map(lambda x: x * jnp.nan, state) if step == 1 else state
+    def poison(step, state):  # before the second step, every float of the state becomes NaN
+        # (the integer counts stay integers: same types, so the compiled step is reused)
+        def nan(x):
+            return x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x
+
+        return jax.tree.map(nan, state) if step == 1 else state
 
     nan_run = tmp_path / "nan"
     bad = dataclasses.replace(cfg, run=str(nan_run), steps=3)

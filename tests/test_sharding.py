@@ -201,10 +201,15 @@ def _script_dyn(workdir: Path) -> dict:
     }
 
 
+def _xla_flags(devices: int) -> str:
+    """The session's XLA flags (tests/conftest.py) with `devices` forced CPU devices."""
+    return f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
+
+
 def _run_script(phase: str, workdir: Path) -> dict:
     env = {
         **os.environ,
-        "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+        "XLA_FLAGS": _xla_flags(devices=2),
         "JAX_PLATFORMS": "cpu",
     }
     proc = subprocess.run(
@@ -353,7 +358,7 @@ def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
     env = {**os.environ, "JAX_PLATFORMS": "cpu"}
     one = subprocess.run(
         [*argv, "--run", str(tmp_path / "one")],
-        env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"},
+        env={**env, "XLA_FLAGS": _xla_flags(devices=2)},
         capture_output=True,
         text=True,
         timeout=600,
@@ -363,7 +368,7 @@ def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
     procs = [
         subprocess.Popen(
             [*argv, "--run", str(tmp_path / "two"), *hosts, "--process-id", str(i)],
-            env={**env, "XLA_FLAGS": "--xla_force_host_platform_device_count=1"},
+            env={**env, "XLA_FLAGS": _xla_flags(devices=1)},
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

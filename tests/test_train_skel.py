@@ -178,14 +178,22 @@ def test_sequence_windows_pad_with_last_frame():
     np.testing.assert_array_equal(windows[:, :, 0, 0, 0].ravel(), [0, 1, 2, 3, 4, 5, 6, 6, 6])
 
 
-def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(data_root, tmp_path):
-    cfg = _cfg(data_root)
+def _poison(step, state):
+    """Before the third step every float in the state becomes NaN. The integer step counts stay
+    integers, so the poisoned state has the types of the clean one and the compiled step is
+    reused, not compiled again."""
 
-    def poison(step, state):  # before the third step, every parameter becomes NaN
-        return jax.tree.map(lambda x: x * jnp.nan, state) if step == 2 else state
+    def nan(x):
+        return x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x
+
+    return jax.tree.map(nan, state) if step == 2 else state
+
+
+def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(three_sequences, tmp_path):
+    cfg = _cfg(three_sequences)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison)
+        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=_poison)
     graphdef, state = skel.build(cfg)
     with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.latest_step() == 2
@@ -193,24 +201,23 @@ def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(data_root, tmp_
     assert all(np.all(np.isfinite(x)) for x in _leaves(good))
 
 
-def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(data_root, tmp_path):
+def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(
+    three_sequences, tmp_path
+):
     # Metrics are fetched at log / checkpoint steps only (4 and 2 here); the NaN of step 3 is
     # found at step 4 and reported as step 3, before step 4 could be checkpointed.
-    cfg = _cfg(data_root, log_every=4, val_every=6, ckpt_every=2)
-
-    def poison(step, state):
-        return jax.tree.map(lambda x: x * jnp.nan, state) if step == 2 else state
+    cfg = _cfg(three_sequences, log_every=4, val_every=6, ckpt_every=2)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison)
+        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=_poison)
     assert common.checkpoint_steps(tmp_path / "run" / "checkpoints") == [2]
     assert not (tmp_path / "run" / common.METRICS_FILE).exists()  # nothing logged before 4
 
 
-def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_path):
+def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences, tmp_path):
     # A limit that has passed once the first step ends: that step is the last one, validated,
     # checkpointed and finalised like step `steps` would be.
-    cfg = _cfg(data_root, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
+    cfg = _cfg(three_sequences, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
     summary = skel.train(cfg, tmp_path / "run", progress=False)
     runs.finish_phase1(tmp_path / "run")
     short = skel.train(cfg, tmp_path / "short", progress=False)
@@ -224,13 +231,13 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(data_root, tmp_p
     assert (tmp_path / "run" / "skeleton.json").is_file()
     # The exporter can read another copy of the dataset and write elsewhere: same keypoints.
     again = runs.export_keypoints(
-        tmp_path / "run", "test", data_root=data_root, path=tmp_path / "again.npz"
+        tmp_path / "run", "test", data_root=three_sequences, path=tmp_path / "again.npz"
     )
     with np.load(again) as a, np.load(tmp_path / "run" / "keypoints_test.npz") as b:
         assert sorted(a.files) == sorted(b.files)
         for name in a.files:
             np.testing.assert_array_equal(a[name], b[name])
-    full = skel.train(_cfg(data_root), tmp_path / "full", progress=False, finalize=False)
+    full = skel.train(_cfg(three_sequences), tmp_path / "full", progress=False, finalize=False)
     assert full["step"] == 6 and full["stopped_by_time_limit"] is False
 
 
@@ -278,8 +285,8 @@ def test_overrides_parse_types():
     assert cfg.lr_milestones == (3, 7) and cfg.weights.intensity_weighted is True
 
 
-def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(data_root, tmp_path):
-    cfg = _cfg(data_root, steps=2)
+def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(three_sequences, tmp_path):
+    cfg = _cfg(three_sequences, steps=2)
     run = tmp_path / "run"
     skel.train(cfg, run, progress=False, finalize=False)
     with pytest.raises(ValueError, match="--resume"):

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import pytest
 from test_train_dyn import make_fake_run, tiny_cfg
 from test_train_skel import _cfg as skel_cfg
+from test_train_skel import poison_after
 
 from nmjax import atomic, runs
 from nmjax.cli import main as nmjax_main
@@ -119,17 +120,10 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     config = json.loads((run / common.CONFIG_FILE).read_text())
     assert config == {**config_before, "steps": 4, "val_every": 4}
 
-    def poison(step, state):  # before the second step, every float of the state becomes NaN
-        # (the integer counts stay integers: same types, so the compiled step is reused)
-        def nan(x):
-            return x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x
-
-        return jax.tree.map(nan, state) if step == 1 else state
-
     nan_run = tmp_path / "nan"
     bad = dataclasses.replace(cfg, run=str(nan_run), steps=3)
     with pytest.raises(common.NonFiniteLossError, match="at step 2"):
-        runs.train_dynamics(bad, progress=False, step_hook=poison)
+        runs.train_dynamics(bad, progress=False, step_hook=poison_after(1))
     assert common.checkpoint_steps(nan_run / common.CHECKPOINTS) == [1]
     restored = runs.restore_dynamics(nan_run)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(restored))

@@ -178,22 +178,25 @@ def test_sequence_windows_pad_with_last_frame():
     np.testing.assert_array_equal(windows[:, :, 0, 0, 0].ravel(), [0, 1, 2, 3, 4, 5, 6, 6, 6])
 
 
-def _poison(step, state):
-    """Before the third step every float in the state becomes NaN. The integer step counts stay
-    integers, so the poisoned state has the types of the clean one and the compiled step is
-    reused, not compiled again."""
+def poison_after(poisoned_step):
+    """A trainer's `step_hook` that makes every float of the state NaN once step
+    `poisoned_step` is done. The integer step counts stay integers, so the poisoned state has the
+    types of the clean one and the compiled step is reused, not compiled again."""
 
     def nan(x):
         return x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x
 
-    return jax.tree.map(nan, state) if step == 2 else state
+    def hook(step, state):
+        return jax.tree.map(nan, state) if step == poisoned_step else state
+
+    return hook
 
 
 def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(three_sequences, tmp_path):
     cfg = _cfg(three_sequences)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=_poison)
+        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
     graphdef, state = skel.build(cfg)
     with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.latest_step() == 2
@@ -209,7 +212,7 @@ def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(
     cfg = _cfg(three_sequences, log_every=4, val_every=6, ckpt_every=2)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=_poison)
+        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
     assert common.checkpoint_steps(tmp_path / "run" / "checkpoints") == [2]
     assert not (tmp_path / "run" / common.METRICS_FILE).exists()  # nothing logged before 4
 

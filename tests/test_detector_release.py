@@ -172,3 +172,34 @@ def test_initialisation_is_the_releases(default_detector):
     assert fuse.shape == (2, 1) and np.all(np.abs(fuse) < 0.1) and np.any(fuse != 0)
     np.testing.assert_array_equal(model.fuse.bias[...], 0.0)
     np.testing.assert_array_equal(model.affinity_params[...], 1.0)
+
+
+def test_fan_in_initialisation_is_a_named_option_that_spreads_untrained_keypoints():
+    cfg = dataclasses.replace(skel_preset("synth-arm", "tiny").model, grid=16)
+    models = {
+        init: KeypointDetector(dataclasses.replace(cfg, init=init), rngs=nnx.Rngs(0))
+        for init in ("release", "fan_in")
+    }
+    convs = [m for _, m in nnx.iter_modules(models["fan_in"]) if isinstance(m, blocks.Conv3D)]
+    assert len(convs) > 10
+    for m in convs:
+        w = np.asarray(m.kernel[...])
+        std = 1 / np.sqrt(np.prod(w.shape[:-1]))
+        assert abs(w.std() / std - 1) < 5 / np.sqrt(2 * w.size) + 1e-3, w.shape
+        np.testing.assert_array_equal(m.bias[...], 0.0)
+    np.testing.assert_array_equal(models["fan_in"].fuse.kernel[...], [[1.0], [0.0]])
+    np.testing.assert_array_equal(models["fan_in"].fuse.bias[...], [-4.0])
+    # What the option is for: at the release's scales an untrained detector puts every keypoint
+    # in one spot; at fan-in scale they spread.
+    voxels = jnp.asarray(np.random.default_rng(0).random((1, 2, 16, 16, 16)) < 0.1, jnp.float32)
+    spread = {
+        init: float(
+            np.asarray(nnx.jit(lambda m, v: m(v)["keypoints"])(model, voxels))[..., :3]
+            .std(axis=2)
+            .mean()
+        )
+        for init, model in models.items()
+    }
+    assert spread["release"] < 0.01 < 0.05 < spread["fan_in"], spread
+    with pytest.raises(ValueError, match="model.init"):
+        KeypointDetector(dataclasses.replace(cfg, init="xavier"), rngs=nnx.Rngs(0))

@@ -170,6 +170,11 @@ class DetectorConfig:
     # "winograd" that form on every backend. Every form computes the same function; Winograd's
     # rounds differently from the direct sums (`conv_kernels.winograd_conv3d_valid`).
     conv_form: str = "auto"
+    # Initial weights. "release": the released network's (`models.blocks.INIT_STD`,
+    # `FEATURE_INIT_STD`). "fan_in": nmjax's earlier choice, every convolution kernel N(0,
+    # 1 / fan_in) (LeCun normal) and the heatmap fusion starting at 1 x frame heatmap - 4, which
+    # spreads an untrained detector's keypoints over the body instead of one spot.
+    init: str = "release"
 
 
 @dataclass(frozen=True)

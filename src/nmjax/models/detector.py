@@ -9,6 +9,8 @@ Frames are folded into the batch axis; nothing loops over time or keypoints.
 
 from __future__ import annotations
 
+import math
+
 import jax
 import jax.numpy as jnp
 from flax import nnx
@@ -23,8 +25,12 @@ from nmjax.models.blocks import (
     ConvNormAct,
     FeatureNet,
     check_heatmap_stride,
+    normal_init,
 )
 from nmjax.models.conv_kernels import Evaluation, in_compute_dtype
+
+# The detector's initial weights (`DetectorConfig.init`).
+DETECTOR_INITS = ("release", "fan_in")
 
 
 def check_detector_config(cfg: DetectorConfig) -> None:
@@ -51,6 +57,8 @@ def check_detector_config(cfg: DetectorConfig) -> None:
             f"model.keypoint_temperature must be positive, got {cfg.keypoint_temperature}"
         )
     Evaluation(cfg.conv_form, cfg.compute_dtype)  # refuses an unknown form or dtype
+    if cfg.init not in DETECTOR_INITS:
+        raise ValueError(f"model.init must be one of {', '.join(DETECTOR_INITS)}, got {cfg.init!r}")
 
 
 class VoxelDecoder(nnx.Module):
@@ -147,6 +155,19 @@ class KeypointDetector(nnx.Module):
         )
         self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, **kw)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
+        if cfg.init == "fan_in":
+            self._init_fan_in(rngs)
+
+    def _init_fan_in(self, rngs: nnx.Rngs) -> None:
+        """Redraws every convolution kernel N(0, 1 / fan_in) and starts the fusion at
+        1 x frame heatmap + 0 x spatio-temporal heatmap - 4 (`DetectorConfig.init = "fan_in"`)."""
+        for _, module in nnx.iter_modules(self):
+            if isinstance(module, Conv3D):
+                shape = module.kernel[...].shape
+                fan_in = math.prod(shape[:-1])
+                module.kernel[...] = normal_init(rngs.params(), shape, 1.0 / math.sqrt(fan_in))
+        self.fuse.kernel[...] = jnp.asarray([[1.0], [0.0]], jnp.float32)
+        self.fuse.bias[...] = jnp.asarray([-4.0], jnp.float32)
 
     def affinity(self) -> jax.Array:
         """(N, K, K) row-softmaxed affinity with zero diagonal (Eq. 12)."""

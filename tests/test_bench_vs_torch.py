@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 from experiment_scripts import load_experiment
 from flax import nnx
+from tiny_runs import spread_convolutions
 
 from nmjax import losses
 from nmjax.config import apply_overrides, skel_preset
-from nmjax.models.blocks import Conv3D
 from nmjax.models.detector import KeypointDetector
 
 
@@ -78,14 +78,7 @@ def test_twin_computes_the_detector_and_its_loss(grid, stride):
     detector = KeypointDetector(model_cfg, rngs=nnx.Rngs(0))
     # Weights of unit-ish scale instead of the release's 0.001 / 0.02, so that every layer,
     # both heatmap branches and the LeakyReLUs' negative sides are in play.
-    for i, (_, m) in enumerate(nnx.iter_modules(detector)):
-        if isinstance(m, Conv3D):
-            shape = m.kernel[...].shape
-            m.kernel[...] = jax.random.normal(jax.random.key(i), shape) / np.sqrt(
-                np.prod(shape[:-1])
-            )
-    detector.fuse.kernel[...] = jnp.asarray([[0.7], [0.4]])
-    detector.fuse.bias[...] = jnp.asarray([-1.0])
+    spread_convolutions(detector)
     twin = script.TwinDetector(model_cfg)
     n_params = sum(int(p.size) for p in jax.tree.leaves(nnx.state(detector, nnx.Param)))
     assert script.twin_param_count(twin) == n_params == script.nmjax_param_count(model_cfg)

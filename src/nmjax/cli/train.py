@@ -40,8 +40,9 @@ SKEL_PRESETS_HELP = (
     "default: the paper's network and the release's recipe (batch 3 of 10 frames at G=64; the "
     "dataset's epochs: aist, hanco, animals, panda 200, dfaust 2000, an epoch ceil(sequences / "
     "3) steps; Adam at 4e-4 restarted every epoch, no clipping, 0.25x and 0.1x at the "
-    "dataset's decay epochs); cpu: G=32, C=16, batch 2 of 6 frames, 160 epochs (2,240 steps "
-    "on a synthetic body); tiny: for tests. Ignored with --resume"
+    "dataset's decay epochs); cpu: G=32, C=16, batch 2 of 6 frames, 2,200 steps at lr 1e-3, one "
+    "Adam state, clipping at 1.0, decays at steps 1,400 and 1,900 (what measured better on 2 "
+    "cores); tiny: for tests. Ignored with --resume"
 )
 
 

@@ -64,7 +64,8 @@ def test_base_variant_is_the_cpu_preset_counted_in_steps(study):
     base = study.variant_config("synth-hand", "base", 12.0, 0)
     preset = skel_preset("synth-hand", "cpu")
     assert base == dataclasses.replace(with_steps(preset, 100_000), time_limit_minutes=12.0, seed=0)
-    assert base.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (0.1, 1.0)
+    # The hand's cpu preset carries its body changes (config.CPU_BODY_CHANGES).
+    assert base.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (10.0, 0.5)
     fixed = study.variant_config("synth-arm", "vol10_temp0.5", 0.0, 1, steps=600)
     assert (fixed.steps, fixed.time_limit_minutes, fixed.seed) == (600, 0.0, 1)
     assert (fixed.weights.vol, fixed.model.keypoint_temperature) == (10.0, 0.5)

@@ -76,6 +76,11 @@ def test_cpu_preset_trains_the_recipe_that_measured_better_on_two_cores():
         assert (cfg.epochs, cfg.steps, cfg.lr_milestones) == (0, 2200, (1400, 1900))
         assert (cfg.learning_rate, cfg.clip_norm, cfg.optimizer_reset) == (1e-3, 1.0, "never")
         assert resolve_epochs(cfg, 27, 2).steps == CPU_STEPS  # a step count: no epochs to resolve
+    # The hand's per-body changes (recipe_ab.md, "Variants"); the arm has none.
+    hand, arm = skel_preset("synth-hand", "cpu"), skel_preset("synth-arm", "cpu")
+    assert (hand.weights.vol, hand.model.keypoint_temperature) == (10.0, 0.5)
+    assert (arm.weights.vol, arm.model.keypoint_temperature) == (10.0, 1.0)
+    assert skel_preset("synth-hand", "default").weights.vol == 0.1  # the paper's HanCo value
     # The paper's scale keeps the release's recipe.
     paper = skel_preset("synth-arm", "default")
     assert (paper.learning_rate, paper.clip_norm, paper.optimizer_reset) == (4e-4, 0.0, "epoch")

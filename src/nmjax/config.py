@@ -316,6 +316,15 @@ OPTIMIZER_RESETS = ("epoch", "never")
 # 0.25x and 0.1x at the milestones.
 CPU_STEPS = 2200
 CPU_LR_MILESTONES = (1400, 1900)
+# Per-body changes to the `cpu` preset, as `--set` overrides, each measured against the preset
+# without it (experiments/results/recipe_ab.md, "Variants").
+CPU_BODY_CHANGES: dict[str, tuple[str, ...]] = {
+    # w_vol 10 (the paper's HanCo value is 0.1) and keypoints from heatmap^2, first chosen on the
+    # earlier network: on the released one, at seeds 0 and 1, a joint's nearest node came from
+    # 0.37 / 0.43 of the cube to 0.16 / 0.17, the distinct nodes from 9 / 6 to 17 / 15 and the
+    # tracking CD from 73 / 72 to 58 / 61; without them the keypoints stay in a cluster.
+    "synth-hand": ("weights.vol=10.0", "model.keypoint_temperature=0.5"),
+}
 
 
 def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainConfig:
@@ -324,7 +333,8 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
     default: the paper's network and the release's recipe (G=64, C=128, batch 3, T=10; the
     dataset's epochs and decay epochs, Adam at 4e-4 restarted every epoch, no clipping).
     cpu: G=32, C=16, narrow hourglass, batch 2 of T=6, for 2 CPU cores, and the recipe that
-    measured better there: `CPU_STEPS` steps at lr 1e-3, one Adam state, clipping at 1.0.
+    measured better there: `CPU_STEPS` steps at lr 1e-3, one Adam state, clipping at 1.0, and
+    the body's `CPU_BODY_CHANGES`.
     tiny: G=16 and 20 steps, for tests.
     """
     spec = dataset_spec(data)
@@ -357,6 +367,7 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
             val_batches=8,
             ckpt_every=200,
         )
+        cfg = apply_overrides(cfg, CPU_BODY_CHANGES.get(data, ()))
     elif preset == "tiny":
         cfg = dataclasses.replace(
             cfg,

@@ -42,7 +42,8 @@ SKEL_PRESETS_HELP = (
     "3) steps; Adam at 4e-4 restarted every epoch, no clipping, 0.25x and 0.1x at the "
     "dataset's decay epochs); cpu: G=32, C=16, batch 2 of 6 frames, 2,200 steps at lr 1e-3, one "
     "Adam state, clipping at 1.0, decays at steps 1,400 and 1,900 (what measured better on 2 "
-    "cores); tiny: for tests. Ignored with --resume"
+    "cores), on synth-hand also w_vol 10 and keypoints from heatmap^2; tiny: for tests. "
+    "Ignored with --resume"
 )
 
 

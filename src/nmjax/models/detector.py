@@ -156,9 +156,9 @@ class KeypointDetector(nnx.Module):
         self.decoder = VoxelDecoder(2 * k + c + 3, c, stride, **kw)
         self.affinity_params = nnx.Param(jnp.ones((cfg.num_affinity, k, k - 1), jnp.float32))
         if cfg.init == "fan_in":
-            self._init_fan_in(rngs)
+            self.init_fan_in(rngs)
 
-    def _init_fan_in(self, rngs: nnx.Rngs) -> None:
+    def init_fan_in(self, rngs: nnx.Rngs) -> None:
         """Redraws every convolution kernel N(0, 1 / fan_in) and starts the fusion at
         1 x frame heatmap + 0 x spatio-temporal heatmap - 4 (`DetectorConfig.init = "fan_in"`)."""
         for _, module in nnx.iter_modules(self):

@@ -42,6 +42,19 @@ def test_delta_heatmap_gives_cell_coordinate():
     np.testing.assert_allclose(kp[:, 3], [1.0, 0.5, 0.5], atol=1e-5)
 
 
+def test_a_near_zero_heatmap_puts_its_keypoint_near_the_grid_centre():
+    # The release adds 1e-6 to every cell before normalising. On a 4^3 grid a heatmap of 1e-6 in
+    # cell (0, 0, 0) and 0 elsewhere gives, per axis, marginal 17e-6 at x = -1 and 16e-6 at
+    # -1/3, 1/3 and 1 (total 65e-6): mu = (-17 - 16/3 + 16/3 + 16) / 65 = -1/65 on each axis.
+    # (1e-6 added once to the denominator instead would give -1/2.) Zeros: exactly the centre.
+    g = 4
+    heat = np.zeros((g, g, g, 2), np.float32)
+    heat[0, 0, 0, 0] = 1e-6
+    kp = np.asarray(kpm.heatmap_to_keypoints(jnp.asarray(heat)))
+    np.testing.assert_allclose(kp[0, :3], -1 / 65, rtol=1e-4)
+    np.testing.assert_allclose(kp[1, :3], 0.0, atol=1e-7)
+
+
 def _numpy_keypoints(heat):
     g = heat.shape[-2]
     x = np.linspace(-1, 1, g)
@@ -49,8 +62,8 @@ def _numpy_keypoints(heat):
     alpha = mean / (mean.max(axis=-1, keepdims=True) + 1e-6)
     mu = []
     for others in ((-3, -2), (-4, -2), (-4, -3)):
-        m = heat.sum(axis=others)
-        p = m / (m.sum(axis=-2, keepdims=True) + 1e-6)
+        m = (heat + 1e-6).sum(axis=others)  # the release's 1e-6 in every cell
+        p = m / m.sum(axis=-2, keepdims=True)
         mu.append((p * x[:, None]).sum(axis=-2))
     return np.stack([*mu, alpha], axis=-1)
 
@@ -96,7 +109,9 @@ def test_gaussian_map_peak_and_round_trip():
     assert np.unravel_index(np.argmax(maps[..., 0]), (n, n, n)) == (2, 6, 4)
     np.testing.assert_allclose(maps.max(), 0.7, rtol=1e-6)
     back = kpm.heatmap_to_keypoints(maps)
-    np.testing.assert_allclose(back[0, :3], kp[0, :3], atol=1e-4)
+    # The release's 1e-6 per cell adds n^3 1e-6 of mass centred on 0: mu shrinks by M / (M + that).
+    mass = float(jnp.sum(maps))
+    np.testing.assert_allclose(back[0, :3], kp[0, :3] * mass / (mass + n**3 * 1e-6), atol=1e-5)
 
 
 def test_gradients_finite():

@@ -149,6 +149,25 @@ def test_trajectory_cost_two_keypoints_known_cosine():
     np.testing.assert_allclose(cost, cost.T, atol=1e-7)
 
 
+def test_cosine_clamps_a_short_norm_in_value_but_not_in_its_gradient():
+    # PyTorch's cosine similarity (the release's L_traj) clamps each norm to eps in place outside
+    # autograd. For u = s x with s = 5e-7 < eps = 1e-6 and v = x (unit):
+    # cos = u.v / (eps |v|) = s / eps = 0.5, and d cos / du = v / eps - (u.v) / eps^2 * u / |u|
+    # = (1 / eps - s / eps^2) x = 5e5 x; a clamp that stopped the norm's gradient would give 1e6 x.
+    s, eps = 5e-7, losses.COS_EPS
+    u = jnp.array([[s, 0.0, 0.0]], jnp.float32)
+    v = jnp.array([[1.0, 0.0, 0.0]], jnp.float32)
+    np.testing.assert_allclose(losses._cosine(u, v)[0, 0], s / eps, rtol=1e-5)
+    grad = jax.grad(lambda u: losses._cosine(u, v)[0, 0])(u)
+    np.testing.assert_allclose(grad, [[1 / eps - s / eps**2, 0.0, 0.0]], rtol=1e-4)
+    # A keypoint standing still (u = 0): cosine 0, gradient v / eps (the norm's gradient at 0 is 0).
+    zero = jnp.zeros((1, 3), jnp.float32)
+    assert float(losses._cosine(zero, v)[0, 0]) == 0.0
+    np.testing.assert_allclose(
+        jax.grad(lambda u: losses._cosine(u, v)[0, 0])(zero), [[1 / eps, 0.0, 0.0]], rtol=1e-5
+    )
+
+
 def test_affinity_from_params_layout():
     p = jnp.arange(2 * 4 * 3, dtype=jnp.float32).reshape(2, 4, 3)
     a = np.asarray(losses.affinity_from_params(p))

@@ -55,7 +55,9 @@ def heatmap_to_keypoints(heatmaps: Array, temperature: float = 1.0) -> Array:
 
     alpha_k = mean of heatmap k over the grid, divided by (max over K of those means + 1e-6).
     mu_k along axis d = expectation of `linspace(-1, 1, g)` under the marginal of heatmap k on that
-    axis (sum over the two other axes), normalised as marginal / (sum of marginal + 1e-6).
+    axis (sum over the two other axes) of the heatmap with 1e-6 added to every cell, normalised
+    to sum 1: the release's convention, under which a heatmap that is near zero everywhere puts
+    its keypoint near the grid centre (a heatmap of zeros: exactly at it).
 
     Args:
         heatmaps: (..., g, g, g, K) non-negative (softplus) heatmaps.
@@ -82,8 +84,9 @@ def heatmap_to_keypoints(heatmaps: Array, temperature: float = 1.0) -> Array:
     mus = []
     for axis in (-4, -3, -2):  # x, y, z: three fixed axes, not a loop over data
         others = tuple(a for a in (-4, -3, -2) if a != axis)
-        marginal = jnp.sum(heatmaps, axis=others)  # (..., g, K)
-        prob = marginal / (jnp.sum(marginal, axis=-2, keepdims=True) + _EPS)
+        # 1e-6 in each of the g^2 cells summed into a marginal cell.
+        marginal = jnp.sum(heatmaps, axis=others) + _EPS * g * g  # (..., g, K)
+        prob = marginal / jnp.sum(marginal, axis=-2, keepdims=True)
         mus.append(jnp.einsum("...gk,g->...k", prob, coords))
     return jnp.stack([*mus, alpha], axis=-1)
 

@@ -233,10 +233,18 @@ def graph_complexity(affinity: Array) -> Array:
     return jnp.mean(cross)
 
 
+def _clamped_norm(x: Array) -> Array:
+    """(..., 3) -> (...) the norm clamped to at least COS_EPS in value only: the gradient is the
+    unclamped norm's, as in PyTorch's cosine similarity (which clamps the norm in place outside
+    autograd; the release's L_traj is computed with it)."""
+    norm = _safe_norm(x)
+    return norm + jax.lax.stop_gradient(jnp.maximum(norm, COS_EPS) - norm)
+
+
 def _cosine(u: Array, v: Array) -> Array:
     """(..., K, 3) x (..., K, 3) -> (..., K, K) cosine similarity, norms clamped to COS_EPS."""
-    nu = jnp.maximum(_safe_norm(u), COS_EPS)
-    nv = jnp.maximum(_safe_norm(v), COS_EPS)
+    nu = _clamped_norm(u)
+    nv = _clamped_norm(v)
     return jnp.einsum("...kd,...ld->...kl", u / nu[..., None], v / nv[..., None])
 
 
@@ -251,10 +259,11 @@ def trajectory_cost(
     code's cost (DESIGN §5), on which the per-dataset w_traj of Tables 4-8 were tuned; the
     default. `printed_scale=True` gives the printed Eq. 14's [0, 1] scale (the same cost halved).
     The printed Eq. 14 divides each inner product by its own absolute value (a sign); the
-    released code uses the cosine similarity, computed here with both norms clamped to 1e-6 (a
-    zero velocity gives cosine 0). With `intensity_weighted`, row k is weighted by alpha_k
-    averaged onto the velocity frames ((alpha_t + alpha_t+1) / 2) and onto the acceleration
-    frames (mean of the two velocity-frame weights).
+    released code uses the cosine similarity, computed here as PyTorch computes it: both norms
+    clamped to 1e-6 in value, the gradient the unclamped norm's (a zero velocity gives cosine
+    0). With `intensity_weighted`, row k is weighted by alpha_k averaged onto the velocity frames
+    ((alpha_t + alpha_t+1) / 2) and onto the acceleration frames (mean of the two velocity-frame
+    weights).
 
     Args:
         keypoints: (..., T, K, 4) with T >= 3.

@@ -49,20 +49,19 @@ DYN_FLAGS := --data $(DATA) --model $(MODEL) --preset $(PRESET) \
 train-dyn:
 	$(NMJAX) train-dyn $(DYN_FLAGS) $(ARGS)
 
-# Paper tables on the synthetic bodies at CPU scale -> experiments/results/*.md and plots.
-# STEPS: phase-1 steps per run (default 2000); DYN_STEPS: phase-2 steps (default 3000);
-# EXP_DATA: the bodies, e.g. EXP_DATA="synth-arm synth-hand" (default: each script's own list).
+# The paper's results on the synthetic bodies at the cpu preset -> experiments/results/. Phase 1:
+# a row per (body, seed, variant), kept across sessions (experiments/paper_phase1.py says when);
+# then phase 2 on each body's seed-0 row. EXP_DATA: the bodies (default all four); SEEDS (0 1);
+# STEPS: phase-1 steps instead of the preset's (smoke runs only); DYN_STEPS: phase-2 steps.
 DYN_STEPS ?= 3000
-EXP_STEPS = $(or $(STEPS),2000)
-EXP_DATA ?=
-EXP_FLAGS = $(if $(EXP_DATA),--data $(EXP_DATA))
+SEEDS ?= 0 1
+EXP_DATA ?= synth-arm synth-hand synth-human synth-quadruped
 EXP_PY := JAX_PLATFORMS=cpu $(VENV)/bin/python
 
 experiments:
-	$(EXP_PY) experiments/table1_2_9_10_phase1.py --steps $(EXP_STEPS) $(EXP_FLAGS)
-	$(EXP_PY) experiments/ltraj_ablation.py --steps $(EXP_STEPS) $(EXP_FLAGS)
-	$(EXP_PY) experiments/table11_12_interpolation.py --skel-steps $(EXP_STEPS) \
-		--dyn-steps $(DYN_STEPS) $(EXP_FLAGS)
+	$(EXP_PY) experiments/paper_phase1.py --data $(EXP_DATA) --seeds $(SEEDS) \
+		$(if $(STEPS),--steps $(STEPS))
+	$(EXP_PY) experiments/table11_12_interpolation.py --dyn-steps $(DYN_STEPS) --data $(EXP_DATA)
 
 clean:
 	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

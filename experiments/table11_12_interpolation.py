@@ -1,13 +1,14 @@
 """Paper Tables 11-12: interpolation M-CD of Ours, VRNN, Lerp and Slerp, at CPU scale.
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/table11_12_interpolation.py \
-        --data synth-hand synth-human --skel-steps 2000 --dyn-steps 3000
+        --data synth-hand synth-human --dyn-steps 3000
 
-Per dataset: the phase-1 run "ours" (exp_common), a phase-2 "nm" run and a positional "vrnn" run
-on it, then `nmjax.evaluate.evaluate_run` (SR = 3 ... 30, 95% CI over test sequences). Writes
-experiments/results/table11_12_interpolation.md and table11_12_<data>.png (with --keypoints-only
-table11_12_keypoints.md), stamped with the commit, machine and metric definitions
-(`nmjax.provenance`).
+Per dataset: the phase-1 run of the `cpu` preset at seed 0 (`paper_phase1.py`'s row, trained
+here if its run folder is missing), a phase-2 "nm" run and a positional "vrnn" run on it, then
+`nmjax.evaluate.evaluate_run` (SR = 3 ... 30, 95% CI over test sequences). Writes
+experiments/results/table11_12_interpolation.md and table11_12_<data>.png (with
+--keypoints-only table11_12_keypoints.md), stamped with the commit, machine and metric
+definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import argparse
 from pathlib import Path
 
 import exp_common as ec
+import paper_phase1
 
 from nmjax import provenance, runs, viz
 from nmjax.evaluate import (
@@ -42,7 +44,7 @@ def trained_runs(
     Each is also recorded in `trained` under "<data> phase 1" / "<data> nm" / "<data> vrnn" for
     the training note of the results file.
     """
-    skel = ec.skel_run(data, "ours", args.skel_steps)
+    skel = paper_phase1.trained_run(paper_phase1.RowKey(data, 0, "preset"))
     nm = ec.dyn_run(data, "nm", skel, args.dyn_steps)
     vrnn = ec.dyn_run(data, "vrnn", skel, args.dyn_steps)
     trained.update({f"{data} phase 1": skel, f"{data} nm": nm, f"{data} vrnn": vrnn})
@@ -52,7 +54,6 @@ def trained_runs(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", nargs="+", default=["synth-hand", "synth-human"])
-    parser.add_argument("--skel-steps", type=int, default=2000)
     parser.add_argument("--dyn-steps", type=int, default=3000)
     parser.add_argument("--rates", type=int, nargs="+", default=list(SAMPLING_RATES))
     parser.add_argument("--trajectories", type=int, default=16)

@@ -235,12 +235,6 @@ def test_skeleton_against_truth_without_a_true_tree_and_its_table():
     assert lines[3].startswith("| Full | 0.5 | n/a | 0.00866 (0.11) |")
     assert lines[3].endswith("| 1 | 1 | 1 | 3 / 3 |")
     assert evaluate.skeleton_truth_table({"Ours": {"sc": {"score": 0.5}}}) == []
-    # The experiments' phase-1 tables carry the same table, SC in front, under its own heading.
-    section = load_experiment("exp_common.py").skeleton_section({"Full": full})
-    assert section.startswith("\n## Skeleton against the ground truth\n\n")
-    assert "| model | SC | SC fixed nodes | joint distance" in section
-    assert section.endswith("| Full | n/a | n/a | 0.00866 (0.11) | 1 | 1 | 1 | 1 | 1 | 3 / 3 |\n")
-    assert load_experiment("exp_common.py").skeleton_section({"Ours": {}}) == ""
 
 
 def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from flax import nnx
 
+from nmjax import geometry
 from nmjax.config import DynamicsConfig
 from nmjax.models import dynamics
 from nmjax.models.dynamics import Buffer, Dynamics, bone_lengths
@@ -99,7 +100,8 @@ def test_decoder_fk_with_identity_rotations():
     g_out.kernel[...] = jnp.zeros_like(g_out.kernel[...])
     g_out.bias[...] = jnp.asarray(np.arctanh(np.concatenate([root, alpha_raw])))
     r_out.kernel[...] = jnp.zeros_like(r_out.kernel[...])
-    r_out.bias[...] = jnp.zeros_like(r_out.bias[...])  # zero output = identity (IDENTITY_6D)
+    # The identity's 6D vector (its first two columns) for every joint.
+    r_out.bias[...] = jnp.tile(jnp.array([1.0, 0, 0, 0, 1, 0]), K)
     lengths = jnp.asarray(np.random.default_rng(0).uniform(0.1, 0.5, (2, K)), jnp.float32)
     h = jnp.ones((2, TINY.hidden))
     z = jnp.ones((2, TINY.latent))
@@ -248,10 +250,9 @@ def test_gru_cell_is_pytorchs_with_b_hn_inside_the_reset_product():
     x = rng.normal(size=(4, inputs)).astype(np.float32)
     w_ih = np.asarray(cell.input_kernel[...]).T
     w_hh = np.asarray(cell.hidden_kernel[...]).T
-    # PyTorch's bias_ih / bias_hh: the r and z biases split in any way between the two.
-    b_in = np.asarray(cell.input_bias[...])
-    b_hh = np.concatenate([0.3 * b_in[: 2 * hidden], np.asarray(cell.hidden_bias[...])])
-    b_ih = np.concatenate([0.7 * b_in[: 2 * hidden], b_in[2 * hidden :]])
+    # PyTorch's bias_ih / bias_hh, each of 3H: [b_ir, b_iz, b_in] and [b_hr, b_hz, b_hn].
+    assert cell.input_bias.shape == cell.hidden_bias.shape == (3 * hidden,)
+    b_ih, b_hh = np.asarray(cell.input_bias[...]), np.asarray(cell.hidden_bias[...])
     expected = pytorch_gru_step(h, x, w_ih, w_hh, b_ih, b_hh)
     np.testing.assert_allclose(cell(jnp.asarray(h), jnp.asarray(x)), expected, atol=1e-6)
 
@@ -259,6 +260,7 @@ def test_gru_cell_is_pytorchs_with_b_hn_inside_the_reset_product():
     gates = np.asarray(cell.input_bias[...]).copy()
     gates[: 2 * hidden] = -200.0  # sigmoid(-200) is 0 in float32
     cell.input_bias[...] = jnp.asarray(gates)
+    cell.hidden_bias[...] = jnp.asarray(np.r_[np.zeros(2 * hidden), b_hh[2 * hidden :]])
     w_in, b_n = w_ih[2 * hidden :], gates[2 * hidden :]
     np.testing.assert_allclose(
         cell(jnp.asarray(h), jnp.asarray(x)), np.tanh(x @ w_in.T + b_n), atol=1e-6
@@ -266,13 +268,27 @@ def test_gru_cell_is_pytorchs_with_b_hn_inside_the_reset_product():
     # r = 1: b_hn is added to W_hn h inside the tanh.
     gates[:hidden] = 200.0
     cell.input_bias[...] = jnp.asarray(gates)
-    cell.hidden_bias[...] = jnp.full((hidden,), 0.5)
+    cell.hidden_bias[...] = jnp.asarray(np.r_[np.zeros(2 * hidden), np.full(hidden, 0.5)])
     w_hn = w_hh[2 * hidden :]
     np.testing.assert_allclose(
         cell(jnp.asarray(h), jnp.asarray(x)),
         np.tanh(x @ w_in.T + b_n + h @ w_hn.T + 0.5),
         atol=1e-6,
     )
+
+
+def test_an_untrained_rotation_decoder_starts_at_random_rotations_as_released():
+    """The 6D vector is the decoder's output itself (no identity shift): untrained, the joints'
+    rotations are its random bias's, far from the identity (shifted by the identity's 6D vector
+    they would lie within about 25 degrees of it: the bias is below 1/sqrt(mlp) = 0.18)."""
+    model = Dynamics(DynamicsConfig(latent=8, hidden=16, mlp=32), *chain(K), rngs=nnx.Rngs(5))
+    h, z = jnp.zeros((1, 16)), jnp.zeros((1, 8))
+    _, rotations = model.decode(h, z, jnp.ones((1, K)))
+    d6 = model.rotation_decoder(jnp.concatenate([h, z], -1)).reshape(1, K, 6)
+    np.testing.assert_allclose(rotations, geometry.rotation_6d_to_matrix(d6), atol=1e-6)
+    cos = (np.trace(np.asarray(rotations[0]), axis1=-2, axis2=-1) - 1) / 2
+    angles = np.degrees(np.arccos(np.clip(cos, -1, 1)))
+    assert np.median(angles) > 45, angles
 
 
 def test_gru_cell_runs_under_nnx_scan():
@@ -307,11 +323,11 @@ def chain(k: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
 
 def test_trainable_parameter_count_is_the_releases():
     """K = 8, D_z 128, D_h 512: the release's dynamics module holds 1,408,979 values, of which 24
-    are the frozen offset directions and 1,024 the GRU's second copies of the r and z biases."""
+    are the frozen offset directions; the GRU keeps PyTorch's two bias vectors."""
     model = Dynamics(DynamicsConfig(), *chain(8), rngs=nnx.Rngs(0))
     count = sum(x.size for x in jax.tree.leaves(nnx.state(model, nnx.Param)))
-    assert count == 1_408_979 - 24 - 1_024 == 1_407_931
-    assert model.rnn.hidden_bias.shape == (512,)  # b_hn
+    assert count == 1_408_979 - 24 == 1_408_955
+    assert model.rnn.input_bias.shape == model.rnn.hidden_bias.shape == (3 * 512,)
     assert sum(x.size for x in jax.tree.leaves(nnx.state(model, Buffer))) == 24
 
 
@@ -325,14 +341,14 @@ def test_initialisation_is_pytorchs_default():
             kernel = np.asarray(layer.kernel[...])
             np.testing.assert_allclose(kernel.std(), bound / np.sqrt(3), rtol=0.1)  # uniform
     rnn, bound = model.rnn, 1.0 / np.sqrt(128)
-    for values in (rnn.input_kernel[...], rnn.hidden_kernel[...], rnn.hidden_bias[...]):
+    for values in (
+        rnn.input_kernel[...],
+        rnn.hidden_kernel[...],
+        rnn.input_bias[...],
+        rnn.hidden_bias[...],
+    ):
         values = np.asarray(values)
         assert np.abs(values).max() <= bound and values.std() > 0.9 * bound / np.sqrt(3)
-    gates, b_in = np.asarray(rnn.input_bias[...][:256]), np.asarray(rnn.input_bias[...][256:])
-    assert np.abs(b_in).max() <= bound
-    # b_ir + b_hr (and z): the sum of two PyTorch biases, up to 2/sqrt(H), std sqrt(2/3)/sqrt(H).
-    assert np.abs(gates).max() <= 2 * bound and np.abs(gates).max() > bound
-    np.testing.assert_allclose(gates.std(), bound * np.sqrt(2 / 3), rtol=0.15)
 
 
 def test_initial_hidden_state_starts_unit_normal():

@@ -213,6 +213,16 @@ def test_degenerate_6d_has_finite_gradient():
     assert np.all(np.isfinite(g))
 
 
+def test_6d_near_zero_follows_the_releases_additive_epsilon():
+    # x = a1 / (|a1| + 1e-10) = (1e-9 / 1.1e-9, 0, 0); z = x cross a2 = (0, 0, 1/1.1), normalised
+    # to (0, 0, 1) up to 1e-10; y = z cross x = (0, 1/1.1, 0). A clamped norm (max(|a1|, eps))
+    # would give other values: (0.1, 0, 0) with eps = 1e-8.
+    d6 = jnp.array([1e-9, 0.0, 0.0, 0.0, 1.0, 0.0])
+    np.testing.assert_allclose(
+        geo.rotation_6d_to_matrix(d6), np.diag([1 / 1.1, 1 / 1.1, 1.0]), rtol=1e-6, atol=1e-7
+    )
+
+
 def test_fk_gradient_compiles_with_several_batch_axes_and_vmap():
     # Regression: batched dot_general of gathered operands crashed XLA:CPU's simplifier here.
     d6 = jnp.asarray(np.random.default_rng(8).normal(size=(2, 3, 5, 6)).astype(np.float32))

@@ -3,7 +3,10 @@
 Both were recorded when the networks and recipes became the released ones (the detector's layers
 and initialisation; the dynamics model's LeakyReLU, GRU cell, initialisation, lower median and
 averaged KL; lr 4e-4, no clipping, Adam restarted every epoch: here every step in phase 1, whose
-tiny set has one training sequence); a change of the train step, the loop or the data order
+tiny set has one training sequence). Phase 2's were recorded again when its GRU kept PyTorch's
+two bias vectors and its rotation decoder started at the release's random rotations (no identity
+shift), which changed both the initial draw and the first outputs. A change of the train step,
+the loop or the data order
 that alters what a run computes moves them. The tolerance leaves room for float rounding of a
 reformulated convolution, not for a different loss.
 """
@@ -21,7 +24,7 @@ from nmjax.config import dyn_preset
 from nmjax.train import common, skel
 
 SKEL_LOSSES = [31.32627296447754, 35.00435256958008, 33.2287483215332, 37.119834899902344]
-DYN_LOSSES = [1.3842270374298096, 1.2888201475143433, 1.1404112577438354, 1.0583897829055786]
+DYN_LOSSES = [1.5169981718063354, 1.5589879751205444, 1.4423792362213135, 1.585466742515564]
 RTOL = 1e-4
 
 

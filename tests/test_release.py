@@ -21,7 +21,7 @@ from flax import nnx
 
 from nmjax import release
 from nmjax.models import blocks
-from nmjax.models.dynamics import IDENTITY_6D, GRUCell
+from nmjax.models.dynamics import GRUCell
 
 FIXTURE = Path(__file__).parent / "release_fixture"
 TINY = FIXTURE / "tiny_state_dict.pth"
@@ -201,8 +201,8 @@ def _gru(w_ih, w_hh, b_ih, b_hh) -> GRUCell:
     cell = GRUCell(w_ih.shape[1], w_hh.shape[1], rngs=nnx.Rngs(0))
     cell.input_kernel[...] = jnp.asarray(release.linear_kernel(w_ih))
     cell.hidden_kernel[...] = jnp.asarray(release.linear_kernel(w_hh))
-    cell.input_bias[...] = jnp.asarray(release.gru_input_bias(b_ih, b_hh))
-    cell.hidden_bias[...] = jnp.asarray(release.gru_hidden_bias(b_hh))
+    cell.input_bias[...] = jnp.asarray(b_ih)
+    cell.hidden_bias[...] = jnp.asarray(b_hh)
     return cell
 
 
@@ -272,8 +272,7 @@ def test_every_tensor_fills_the_networks_and_the_counts_agree(released):
     dyn_values = sum(a.size for n, a in tensors.items() if n.startswith("dyna_module."))
     assert (det_values, dyn_values) == (8_557_044, 1_529_971)  # shared/release/README.md
     assert count(detector) == det_values
-    # PyTorch keeps b_hr and b_hz twice (in bias_ih and bias_hh); nmjax's cell keeps their sums.
-    assert count(dynamics) == dyn_values - 2 * dyn.model.hidden
+    assert count(dynamics) == dyn_values  # every value, the GRU's two bias vectors included
     # Values landed where the map says, each with its layout.
     t = tensors
     conv = "kypt_detector.vox_to_kypt.extract_features.4.decoder_res2.res_branch.3.weight"
@@ -295,19 +294,17 @@ def test_every_tensor_fills_the_networks_and_the_counts_agree(released):
     np.testing.assert_array_equal(detector.affinity_params[...], t["kypt_detector.affinity_params"])
     gn = "kypt_detector.kypt_to_vox.decode_voxel_from_combined_representation.9.bias"
     np.testing.assert_array_equal(detector.decoder.up2.layers[0].norm.bias[...], t[gn])
-    h = dyn.model.hidden
+    # The GRU's four gate biases (and b_in, b_hn) one to one.
     b_ih, b_hh = t["dyna_module.kypt_rnn_cell.bias_ih"], t["dyna_module.kypt_rnn_cell.bias_hh"]
-    np.testing.assert_allclose(dynamics.rnn.input_bias[:h], b_ih[:h] + b_hh[:h], rtol=1e-6)
-    np.testing.assert_array_equal(dynamics.rnn.hidden_bias[...], b_hh[2 * h :])
+    np.testing.assert_array_equal(dynamics.rnn.input_bias[...], b_ih)
+    np.testing.assert_array_equal(dynamics.rnn.hidden_bias[...], b_hh)
     np.testing.assert_array_equal(
         dynamics.initial_hidden[...], t["dyna_module.init_kypt_rnn_state"][0]
     )
     norms = np.linalg.norm(np.asarray(dynamics.directions[...]), axis=-1)
     np.testing.assert_allclose(norms, 1.0, rtol=1e-5)
-    np.testing.assert_allclose(
-        np.asarray(dynamics.rotation_decoder.out.bias[...]) + np.tile(IDENTITY_6D, 24),
-        t["dyna_module.joint_matrix_decoder.2.bias"],
-        atol=1e-6,
+    np.testing.assert_array_equal(
+        dynamics.rotation_decoder.out.bias[...], t["dyna_module.joint_matrix_decoder.2.bias"]
     )
     assert dynamics.parents == skeleton.parents and len(skeleton.parents) == 24
 
@@ -318,7 +315,7 @@ def _leaky(x):
 
 def test_dynamics_heads_compute_the_releases_mlps(released):
     """Posterior and decoders as the release's nn.Sequential (Linear, LeakyReLU, Linear): the
-    Linear transposes and the rotation decoder's identity shift give the same outputs."""
+    Linear transposes give the same outputs."""
     _, t, _, dyn, _, dynamics, _ = released
     rng = np.random.default_rng(1)
     hz = rng.normal(size=(2, dyn.model.hidden + dyn.model.latent)).astype(np.float32)
@@ -328,7 +325,7 @@ def test_dynamics_heads_compute_the_releases_mlps(released):
         hidden = _leaky(x @ t[f"{p}.0.weight"].T + t[f"{p}.0.bias"])
         return hidden @ t[f"{p}.2.weight"].T + t[f"{p}.2.bias"]
 
-    rot = np.asarray(dynamics.rotation_decoder(jnp.asarray(hz))) + np.tile(IDENTITY_6D, 24)
+    rot = np.asarray(dynamics.rotation_decoder(jnp.asarray(hz)))
     np.testing.assert_allclose(rot, release_mlp("joint_matrix_decoder", hz), atol=1e-4)
     glob = np.asarray(dynamics.global_decoder(jnp.asarray(hz)))
     np.testing.assert_allclose(glob, release_mlp("root_intensity_decoder", hz), atol=1e-4)

@@ -31,12 +31,18 @@ def normalize(x: Array, axis: int = -1, eps: float = _EPS) -> Array:
 # --- representations ---------------------------------------------------------------------------
 
 
-def rotation_6d_to_matrix(d6: Array) -> Array:
-    """6D rotation representation (Zhou et al. 2019) -> rotation matrix, by Gram-Schmidt.
+# The release's 6D conversion divides by ||v|| + 1e-10 (not max(||v||, eps)).
+RELEASE_6D_EPS = 1e-10
 
-    The first three numbers give the x axis (normalised), the last three the y axis after removing
-    its x component; z = x cross y. These are the matrix's columns, so the result is orthonormal
-    with determinant +1 for any input whose two halves are not parallel.
+
+def rotation_6d_to_matrix(d6: Array) -> Array:
+    """6D rotation representation (Zhou et al. 2019) -> rotation matrix, as the release computes
+    it: x = a1 / (||a1|| + 1e-10), z = (x cross a2) / (||x cross a2|| + 1e-10), y = z cross x.
+
+    These are the matrix's columns. For any input whose halves are not parallel and not tiny
+    this is Gram-Schmidt (x, then a2's part orthogonal to x): orthonormal with determinant +1;
+    at a near-zero half the additive epsilon shrinks the axes instead of clamping the norm
+    (a1 = (1e-9, 0, 0), a2 = (0, 1, 0) gives diag(1/1.1, 1/1.1, 1)).
 
     Args:
         d6: (..., 6).
@@ -45,10 +51,11 @@ def rotation_6d_to_matrix(d6: Array) -> Array:
         (..., 3, 3) rotation matrices, columns (x, y, z).
     """
     a1, a2 = d6[..., :3], d6[..., 3:]
-    b1 = normalize(a1)
-    b2 = normalize(a2 - jnp.sum(b1 * a2, axis=-1, keepdims=True) * b1)
-    b3 = jnp.cross(b1, b2)
-    return jnp.stack([b1, b2, b3], axis=-1)
+    x = a1 / (_safe_norm(a1, keepdims=True) + RELEASE_6D_EPS)
+    z = jnp.cross(x, a2)
+    z = z / (_safe_norm(z, keepdims=True) + RELEASE_6D_EPS)
+    y = jnp.cross(z, x)
+    return jnp.stack([x, y, z], axis=-1)
 
 
 def matrix_to_rotation_6d(rot: Array) -> Array:

@@ -487,39 +487,11 @@ def pointwise_kernel(weight: np.ndarray) -> np.ndarray:
     return np.transpose(weight.reshape(weight.shape[:2]))
 
 
-def gru_input_bias(bias_ih: np.ndarray, bias_hh: np.ndarray) -> np.ndarray:
-    """(3H,) [b_r, b_z, b_in] of `GRUCell.input_bias` from PyTorch's bias_ih and bias_hh.
-
-    PyTorch's GRUCell adds b_ir + b_hr and b_iz + b_hz before the gate sigmoids, so the reset and
-    update gates need only their sums; b_in stays outside the reset product."""
-    h = bias_ih.shape[0] // 3
-    return np.concatenate([bias_ih[: 2 * h] + bias_hh[: 2 * h], bias_ih[2 * h :]])
-
-
-def gru_hidden_bias(bias_hh: np.ndarray) -> np.ndarray:
-    """(H,) b_hn, the hidden bias inside the reset product: the last third of bias_hh."""
-    return bias_hh[2 * (bias_hh.shape[0] // 3) :]
-
-
 def offset_directions(offset_param: np.ndarray) -> np.ndarray:
     """(K, 3) unit offset directions as the release uses its frozen offset_param:
     p / (||p|| + 1e-10) (its `get_offset`)."""
     norm = np.sqrt(np.sum(np.square(offset_param, dtype=np.float64), axis=-1, keepdims=True))
     return (offset_param / (norm + 1e-10)).astype(np.float32)
-
-
-def rotation_bias(bias: np.ndarray) -> np.ndarray:
-    """(6K,) output bias of the rotation decoder: the release's minus the identity's 6D vector.
-
-    nmjax's `Dynamics.decode` adds IDENTITY_6D to the decoder's output, the release does not; the
-    same function needs the release's bias less [1, 0, 0, 0, 1, 0] per joint."""
-    from nmjax.models.dynamics import IDENTITY_6D
-
-    return bias - np.tile(IDENTITY_6D, bias.shape[0] // 6)
-
-
-def _gru_input_shapes(shape: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
-    return (shape, shape)
 
 
 SAME = Layout("as is", lambda a: a, lambda s: (s,))
@@ -529,9 +501,6 @@ LINEAR = Layout("Linear", linear_kernel, lambda s: ((s[1], s[0]),))
 POINTWISE = Layout("1x1x1 Conv3d", pointwise_kernel, lambda s: ((s[1], s[0], 1, 1, 1),))
 ROW = Layout("(1, H) row", lambda a: a.reshape(-1), lambda s: ((1, *s),))
 DIRECTIONS = Layout("normalised offsets", offset_directions, lambda s: (s,))
-ROTATION_BIAS = Layout("bias less the identity's 6D", rotation_bias, lambda s: (s,))
-GRU_INPUT_BIAS = Layout("GRU b_r, b_z sums and b_in", gru_input_bias, _gru_input_shapes)
-GRU_HIDDEN_BIAS = Layout("GRU b_hn", gru_hidden_bias, lambda s: ((3 * s[0],),))
 
 StatePath = tuple[str | int, ...]
 
@@ -638,8 +607,8 @@ def detector_entries(model: Any) -> list[Entry]:
 def dynamics_entries(model: Any) -> list[Entry]:
     """Every tensor under `dyna_module.` (HSVRNNBVH) onto a `Dynamics` of kind "nm".
 
-    The GRU's stacked gates are r, z, n in both; PyTorch's two bias vectors become the summed
-    gate biases and b_hn (`gru_input_bias`, `gru_hidden_bias`).
+    The GRU's stacked gates are r, z, n in both, and its two bias vectors are PyTorch's
+    (bias_ih, bias_hh), mapped one to one.
     """
     if model.kind != "nm":
         raise ValueError("the release's dynamics module is the 'nm' (rotation) model")
@@ -657,14 +626,13 @@ def dynamics_entries(model: Any) -> list[Entry]:
     for release, ours in mlps:
         entries += _conv(f"{dyn}{release}.0", (ours, "hidden"), LINEAR)
         entries.append(Entry((f"{dyn}{release}.2.weight",), (ours, "out", "kernel"), LINEAR))
-        bias = ROTATION_BIAS if ours == "rotation_decoder" else SAME
-        entries.append(Entry((f"{dyn}{release}.2.bias",), (ours, "out", "bias"), bias))
+        entries.append(Entry((f"{dyn}{release}.2.bias",), (ours, "out", "bias"), SAME))
     cell = f"{dyn}kypt_rnn_cell."
     entries += [
         Entry((f"{cell}weight_ih",), ("rnn", "input_kernel"), LINEAR),
         Entry((f"{cell}weight_hh",), ("rnn", "hidden_kernel"), LINEAR),
-        Entry((f"{cell}bias_ih", f"{cell}bias_hh"), ("rnn", "input_bias"), GRU_INPUT_BIAS),
-        Entry((f"{cell}bias_hh",), ("rnn", "hidden_bias"), GRU_HIDDEN_BIAS),
+        Entry((f"{cell}bias_ih",), ("rnn", "input_bias"), SAME),
+        Entry((f"{cell}bias_hh",), ("rnn", "hidden_bias"), SAME),
     ]
     return entries
 

@@ -43,7 +43,6 @@ from nmjax.config import DynamicsConfig
 STD_EPS = 1e-4  # std = softplus(raw) + 1e-4 (Fig. 11)
 LEAKY_SLOPE = 0.01  # the release's MLPs use LeakyReLU with PyTorch's default negative slope
 MODELS = ("nm", "vrnn")
-IDENTITY_6D = np.array([1, 0, 0, 0, 1, 0], np.float32)  # first two columns (= rows) of I
 
 
 class Buffer(nnx.Variable):
@@ -144,13 +143,15 @@ class GRUCell(nnx.Module):
         h' = (1 - z) n + z h
 
     flax's GRUCell has no b_hn (its hidden-to-hidden dense carries no bias), which changes n
-    wherever r < 1. PyTorch keeps two biases each for r and z (b_ir + b_hr, b_iz + b_hz); they
-    only enter as a sum, so this cell keeps one of each, drawn as the sum of two PyTorch
-    initialisations so that it starts with the same distribution.
+    wherever r < 1. The gates' biases are PyTorch's too: b_ir and b_hr (b_iz and b_hz) are two
+    parameters that only enter as a sum, kept apart because under Adam two parameters move their
+    sum about twice as fast as one would.
 
     Attributes:
-      input_kernel: (in, 3H) [W_ir, W_iz, W_in] transposed; input_bias: (3H,) [b_r, b_z, b_in].
-      hidden_kernel: (H, 3H) [W_hr, W_hz, W_hn] transposed; hidden_bias: (H,) b_hn.
+      input_kernel: (in, 3H) [W_ir, W_iz, W_in] transposed; input_bias: (3H,) [b_ir, b_iz, b_in]
+        (PyTorch's bias_ih).
+      hidden_kernel: (H, 3H) [W_hr, W_hz, W_hn] transposed; hidden_bias: (3H,) [b_hr, b_hz,
+        b_hn] (PyTorch's bias_hh).
     """
 
     def __init__(self, in_features: int, hidden: int, *, rngs: nnx.Rngs):
@@ -158,17 +159,17 @@ class GRUCell(nnx.Module):
         self.hidden = hidden
         self.input_kernel = nnx.Param(init(rngs.params(), (in_features, 3 * hidden)))
         self.hidden_kernel = nnx.Param(init(rngs.params(), (hidden, 3 * hidden)))
-        gate_bias = init(rngs.params(), (2 * hidden,)) + init(rngs.params(), (2 * hidden,))
-        self.input_bias = nnx.Param(jnp.concatenate([gate_bias, init(rngs.params(), (hidden,))]))
-        self.hidden_bias = nnx.Param(init(rngs.params(), (hidden,)))
+        self.input_bias = nnx.Param(init(rngs.params(), (3 * hidden,)))
+        self.hidden_bias = nnx.Param(init(rngs.params(), (3 * hidden,)))
 
     def __call__(self, h: jax.Array, x: jax.Array) -> jax.Array:
         """One step: h (..., H), x (..., in) -> h' (..., H)."""
         xi_r, xi_z, xi_n = jnp.split(x @ self.input_kernel[...] + self.input_bias[...], 3, -1)
-        hh_r, hh_z, hh_n = jnp.split(h @ self.hidden_kernel[...], 3, axis=-1)
+        hh = h @ self.hidden_kernel[...] + self.hidden_bias[...]
+        hh_r, hh_z, hh_n = jnp.split(hh, 3, axis=-1)
         r = jax.nn.sigmoid(xi_r + hh_r)
         z = jax.nn.sigmoid(xi_z + hh_z)
-        n = jnp.tanh(xi_n + r * (hh_n + self.hidden_bias[...]))
+        n = jnp.tanh(xi_n + r * hh_n)
         return (1.0 - z) * n + z * h
 
 
@@ -250,9 +251,9 @@ class Dynamics(nnx.Module):
             return keypoints, rotations
         y = jnp.tanh(self.global_decoder(hz))  # (..., 3 + K)
         root, alpha = y[..., :3], (y[..., 3:] + 1.0) / 2.0
-        # The decoder predicts the 6D vector relative to the identity's [1,0,0, 0,1,0], so an
-        # all-zero output is the identity instead of a 0/0.
-        rot6d = self.rotation_decoder(hz).reshape(*batch, k, 6) + IDENTITY_6D
+        # As released, the 6D vector is the decoder's output itself: an untrained decoder
+        # outputs its random bias, i.e. random rotations.
+        rot6d = self.rotation_decoder(hz).reshape(*batch, k, 6)
         rotations = geometry.rotation_6d_to_matrix(rot6d)
         offsets = jnp.broadcast_to(self.offsets(lengths), (*batch, k, 3))
         # FK on one flattened batch axis: with several leading axes, XLA:CPU (jax 0.10.2) fails

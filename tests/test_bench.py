@@ -48,7 +48,7 @@ def arm_root(tmp_path_factory):
     )
 
 
-def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
+def test_bench_main_writes_rows_for_both_phases_and_the_detector(arm_root, tmp_path, capsys):
     out = tmp_path / "bench.json"
     argv = ["--preset", "tiny", "--steps", "2", "--warmup", "0", "--compute-dtype", "bfloat16"]
     argv += ["--set", f"skel:data.root={arm_root}", "--set", "dyn:batch_size=2"]
@@ -60,8 +60,8 @@ def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
     env = result["environment"]
     assert env["jax"] == jax.__version__ and env["cpu_count"] >= 1 and env["device_count"] >= 1
     assert {"devices", "backend", "load_avg_1min"} <= set(env)
-    skel_row, dyn_row = result["rows"]
-    for row in (skel_row, dyn_row):
+    skel_row, dyn_row, detect_row = result["rows"]
+    for row in (skel_row, dyn_row, detect_row):
         assert ROW_KEYS <= set(row)
         assert row["steps"] == 2
         for key in ("steps_per_s", "frames_per_s", "compute_s_per_step", "compile_s"):
@@ -75,7 +75,16 @@ def test_bench_main_writes_rows_for_both_phases(arm_root, tmp_path, capsys):
     assert (skel_row["phase"], skel_row["compute_dtype"], skel_row["B"]) == ("skel", "bfloat16", 2)
     assert skel_row["conv_form"] == "auto"  # model.conv_form, recorded with the timing
     assert skel_row["load_s_per_step"] > 0
-    assert (dyn_row["phase"], dyn_row["B"], dyn_row["load_s_per_step"]) == ("dyn", 2, 0.0)
+    assert (dyn_row["phase"], dyn_row["B"]) == ("dyn", 2)
+    assert dyn_row["load_s_per_step"] > 0  # the batch cut on the host
+    # The detector on phase-2 crops: the phase-1 preset's network, the phase-2 preset's T.
+    assert (detect_row["phase"], detect_row["G"], detect_row["B"], detect_row["T"]) == (
+        "detect",
+        8,
+        skel_row["B"],
+        6,
+    )
+    assert detect_row["load_s_per_step"] > 0  # normalising and voxelising the crops
     table = capsys.readouterr().out
     assert "steps/s" in table and "tiny/nm" in table
 
@@ -93,6 +102,8 @@ def test_each_job_argv_reproduces_its_row_config():
         ("dyn", "tiny", "vrnn"),
         ("dyn", "cpu", "nm"),
         ("dyn", "cpu", "vrnn"),
+        ("detect", "tiny", None),
+        ("detect", "cpu", None),
     ]
     for phase, preset, model in todo:
         one = parse_args(bench.job_argv(args, phase, preset, model))
@@ -100,6 +111,7 @@ def test_each_job_argv_reproduces_its_row_config():
         assert bench.configs(one, phase, preset) == bench.configs(args, phase, preset)
         assert (one.steps, one.warmup, one.keypoints) == (args.steps, args.warmup, 7)
     assert bench.configs(args, "skel", "tiny").model.compute_dtype == "bfloat16"
+    assert bench.configs(args, "detect", "tiny") == bench.configs(args, "skel", "tiny")
     assert bench.configs(args, "dyn", "cpu").batch_size == 8
 
 

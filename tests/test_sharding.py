@@ -146,27 +146,22 @@ def _script_dyn(workdir: Path) -> dict:
     poses = np.cumsum(rng.normal(scale=0.05, size=(30, len(PARENTS), 4)), axis=0)
     poses[..., 3] = 0.8
     poses, starts = poses.astype(np.float32), np.arange(30 - cfg.frames + 1, dtype=np.int32)
+    table = dyn.CropTable(poses, starts, cfg.frames)
+    draws = dyn.CropDraws(jax.random.key(3), table.num_starts, cfg.batch_size)
     results = {}
     seen = {}
     for name, devices in (("single", jax.devices()[:1]), ("sharded", jax.devices())):
         mesh = parallel.data_mesh(devices)
         graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-        args = parallel.replicate((state, poses, starts, jax.random.key(3)), mesh)
-        state, table, first, key = args[0], args[1], args[2], args[3]
+        state, key = parallel.replicate((state, jax.random.key(3)), mesh)
         step_fn = dyn.make_train_step(graphdef, cfg, mesh)
         losses = []
         for i in range(2):
-            state, metrics = step_fn(state, table, first, key, np.int32(i))
+            x = parallel.global_array(table.batch(draws.at(i)), mesh)
+            state, metrics = step_fn(state, x, key, np.int32(i))
             losses.append(float(metrics["loss"]))
         results[name] = (losses, state)
-
-        # The gathered batch inside the step is sharded over the mesh.
-        @jax.jit
-        def gathered(table, first, key, mesh=mesh):
-            x = dyn.sample_crops(table, first, key, cfg.batch_size, cfg.frames)
-            return parallel.constrain_batch(x, mesh)
-
-        seen[name] = gathered(table, first, key)
+        seen[name] = x = parallel.global_array(table.batch(draws.at(0)), mesh)  # the batch
     (loss1, state1), (loss2, state2) = results["single"], results["sharded"]
     compared = _compare_states(state2, state1, "['model']", cfg.learning_rate, 2)
     np.testing.assert_allclose(loss2, loss1, rtol=1e-4, atol=1e-5)

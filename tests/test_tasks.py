@@ -401,19 +401,77 @@ def test_phase2_trains_on_crops_of_the_phase1_run(runs, tmp_path, monkeypatch):
     monkeypatch.setattr(run_folders.dyn, "train", train)
     run_folders.train_dynamics(cfg, progress=False)
     assert handed["cfg"].inputs == "crop" and handed["skeleton"][0] == PARENTS
-    data = handed["inputs"]()  # the detector runs only now
+    data = handed["inputs"]()  # the validation clips are detected now, training crops later
     detector = run_folders.phase2_detector(runs["skel"])
     train_seqs = list(run_folders.split_sequences(detector, "train").values())
     starts = [run_folders.crop_starts(seq.num_frames, cfg.frames, 1) for seq in train_seqs]
-    assert len(data.starts) == sum(len(s) for s in starts) > len(train_seqs)
-    assert data.poses.shape == (len(data.starts) * cfg.frames, K, 4)
+    crops = data.crops
+    assert crops.num_starts == sum(len(s) for s in starts) > len(train_seqs)
+    assert crops.detected == 0 and crops.num_keypoints == K
     last = (train_seqs[-1], int(starts[-1][-1]))  # the last crop of the table
+    batch = crops.batch(np.array([crops.num_starts - 1, 0, crops.num_starts - 1]))
+    assert batch.shape == (3, cfg.frames, K, 4) and crops.detected == 2  # each detected once
+    assert crops.postfix() == {"crops_detected": f"2/{crops.num_starts}"}
     np.testing.assert_allclose(
-        data.poses[-cfg.frames :],
-        run_folders.detect_clips(detector, [last], cfg.frames)[0],
-        atol=1e-6,
+        batch[0], run_folders.detect_clips(detector, [last], cfg.frames)[0], atol=1e-6
     )
+    np.testing.assert_array_equal(batch[0], batch[2])
     assert data.val.shape[1:] == (cfg.frames, K, 4) and data.val_cond.shape[1] == 1
+
+
+def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_batches(
+    runs, tmp_path, monkeypatch
+):
+    """No detector pass before the first step; at most min(starts, crops drawn) crops detected;
+    a run stopped after 2 steps and resumed (its crops detected again) logs the losses of an
+    uninterrupted one."""
+    import dataclasses
+
+    from nmjax import runs as run_folders
+    from nmjax.config import dyn_preset
+    from nmjax.train import common
+
+    made = []
+    crop_inputs = run_folders.crop_inputs
+
+    def recording(*args, **kwargs):
+        made.append(crop_inputs(*args, **kwargs))
+        return made[-1]
+
+    monkeypatch.setattr(run_folders, "crop_inputs", recording)
+    before_first_step = []
+
+    def hook(step, state):
+        if step == 0:
+            before_first_step.append(made[-1].crops.detected)
+        return state
+
+    cfg = dataclasses.replace(
+        dyn_preset("synth-arm", "tiny"),
+        skel_run=str(runs["skel"]),
+        steps=4,
+        log_every=1,
+        val_every=4,
+        ckpt_every=2,
+    )
+
+    def losses(run):
+        return [r["train/loss"] for r in common.read_metrics(run) if "train/loss" in r]
+
+    straight = dataclasses.replace(cfg, run=str(tmp_path / "straight"))
+    run_folders.train_dynamics(straight, progress=False, step_hook=hook)
+    crops = made[-1].crops
+    assert before_first_step == [0]
+    assert 0 < crops.detected <= min(crops.num_starts, cfg.steps * cfg.batch_size)
+
+    stopped = dataclasses.replace(cfg, run=str(tmp_path / "stopped"), steps=2)
+    run_folders.train_dynamics(stopped, progress=False)
+    resumed = dataclasses.replace(stopped, steps=4)
+    run_folders.train_dynamics(resumed, resume=True, progress=False)
+    assert made[-1].crops.detected <= 2 * cfg.batch_size  # only the last two steps' draws
+    np.testing.assert_allclose(
+        losses(tmp_path / "stopped"), losses(tmp_path / "straight"), rtol=1e-6
+    )
 
 
 def test_generate_command(runs, tmp_path):

@@ -121,9 +121,14 @@ def test_crops_are_contiguous_windows_of_one_sequence(fake_run):
     poses, starts = dyn.crop_table(traj, 6)
     # valid starts: 30-6+1 + 25-6+1 + 1 (the 4-frame sequence padded to 6)
     assert len(starts) == 25 + 20 + 1 and poses.shape == (30 + 25 + 6, K, 4)
-    crops = np.asarray(
-        dyn.sample_crops(jnp.asarray(poses), jnp.asarray(starts), jax.random.key(0), 64, 6)
+    draws = dyn.CropDraws(jax.random.key(0), len(starts), batch_size=4, block=8)
+    chosen = np.concatenate([draws.at(step) for step in range(16)])  # two blocks
+    assert chosen.min() >= 0 and chosen.max() < len(starts) and len(set(chosen.tolist())) > 20
+    # A step's draws are the same whichever block computed them (exact resume).
+    np.testing.assert_array_equal(
+        dyn.CropDraws(jax.random.key(0), len(starts), batch_size=4, block=3).at(9), chosen[36:40]
     )
+    crops = dyn.CropTable(poses, starts, 6).batch(chosen)
     windows = {
         name: np.lib.stride_tricks.sliding_window_view(x, 6, axis=0).transpose(0, 3, 1, 2)
         for name, x in traj.items()
@@ -157,8 +162,9 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
         cfg = tiny_cfg(fake_run, tmp_path, frames=frames)
         graphdef, state = dyn.build(cfg, PARENTS, ORDER)
         poses, starts = dyn.crop_table(runs.load_trajectories(fake_run, "train"), frames)
+        x = dyn.CropTable(poses, starts, frames).batch(np.arange(cfg.batch_size))
         step = dyn.make_train_step(graphdef, cfg)
-        args = (state, jnp.asarray(poses), jnp.asarray(starts), jax.random.key(0), jnp.int32(0))
+        args = (state, jnp.asarray(x), jax.random.key(0), jnp.int32(0))
         return jaxpr_stats(jax.make_jaxpr(step)(*args)), step, args
 
     (count6, scans6), step, args = trace(6)
@@ -172,11 +178,11 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
     monkeypatch.setattr(dyn, "loss_fn", chex.assert_max_traces(dyn.loss_fn, n=1))
     state = args[0]
     for i in range(3):
-        state, metrics = step(state, *args[1:4], jnp.int32(i))
+        state, metrics = step(state, *args[1:3], jnp.int32(i))
     # A second model of the same configuration reuses the compiled step (no second trace).
     graphdef, fresh = dyn.build(tiny_cfg(fake_run, tmp_path, frames=6), PARENTS, ORDER)
     dyn.make_train_step(graphdef, tiny_cfg(fake_run, tmp_path, frames=6))(
-        fresh, *args[1:4], jnp.int32(0)
+        fresh, *args[1:3], jnp.int32(0)
     )
     assert all(np.isfinite(float(v)) for v in metrics.values())
 
@@ -185,11 +191,11 @@ def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path)
     graphdef, state = dyn.build(cfg, PARENTS, ORDER)
     poses, _ = dyn.crop_table(runs.load_trajectories(fake_run, "train"), cfg.frames)
-    poses, starts = jnp.asarray(poses), jnp.array([3], jnp.int32)  # one crop: a fixed batch
+    x = jnp.asarray(np.repeat(poses[None, 3 : 3 + cfg.frames], cfg.batch_size, 0))  # fixed batch
     step = dyn.make_train_step(graphdef, cfg)
     recon = []
     for i in range(60):
-        state, metrics = step(state, poses, starts, jax.random.key(2), jnp.int32(i))
+        state, metrics = step(state, x, jax.random.key(2), jnp.int32(i))
         recon.append(float(metrics["recon"]))  # Eq. 3 before this step's update
     assert np.mean(recon[-5:]) < 0.5 * np.mean(recon[:5])
     crop = poses[3 : 3 + cfg.frames]  # the logged baseline: x_t predicted by x_{t-1}
@@ -301,15 +307,8 @@ def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_pat
     spread_convolutions(model)  # keypoints that follow the body, as a trained detector's do
     detector = runs.Detector.of(model, cfg, tmp_path)
     seq, frames, grid = translated_body(), 4, cfg.data.grid
-    crop = runs.crop_inputs(detector, [seq], [seq], frames, progress=False)
-    assert list(crop.starts) == [
-        0,
-        4,
-        8,
-        12,
-        16,
-        20,
-    ]  # every start of the 9 frames, laid end to end
+    crop = runs.crop_inputs(detector, [seq], [seq], frames)
+    assert crop.crops.num_starts == 6 and crop.crops.detected == 0  # every start of the 9 frames
 
     # "sequence": one box over the walk, the detector on consecutive windows (export_keypoints).
     whole = runs.sequence_voxels(seq, cfg.data.sample_rate, grid)
@@ -318,7 +317,7 @@ def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_pat
     cut = dyn.sequence_inputs({"train": {"walk": trajectory}, "test": {"walk": trajectory}}, frames)
 
     def crop_at(inputs, s):
-        return inputs.poses[inputs.starts[s] : inputs.starts[s] + frames]
+        return inputs.crops.batch(np.array([s]))[0]
 
     for s in (0, 5):
         own, _ = normalize_sequence(seq.vertices[s : s + frames])

@@ -12,8 +12,12 @@ waiting for data vs computing, compile time and peak memory.
   grain iterator plus the host -> device placement (`skel.device_batch`, blocked until ready);
   "compute" is the compiled step until its outputs are ready. steps/s counts both.
 - Phase 2 (`nmjax.train.dyn`): random-walk keypoint trajectories on a hand-like tree (five chains
-  from the root) stand in for a phase-1 run; the step's cost does not depend on the values. Its
-  crops are gathered on the device inside the step, so there is no host loading (load = 0).
+  from the root) stand in for a phase-1 run; the step's cost does not depend on the values.
+  "load" is cutting the step's drawn crops from the table on the host.
+- Detect: the phase-1 preset's (untrained) detector on phase-2 crops of `--data` (T of the phase-2
+  preset, B of the phase-1 preset per call), forward only, as `nmjax.runs.DetectedCrops` runs it:
+  "load" normalises and voxelises the crops (`runs.clip_voxels`), "compute" is the compiled
+  detector. Its frames/s sits beside the phase-1 step's (forward and backward).
 
 Compile time is `jit(...).lower(...).compile()`, timed on its own; the compiled executable is then
 the one that runs. Memory: the compiled step's `memory_analysis()` (argument, output, temporary
@@ -48,14 +52,16 @@ import numpy as np
 
 from nmjax.config import apply_overrides, dataset_spec, dyn_preset, skel_preset
 
-PHASES = ("skel", "dyn")
+# "detect": the frozen detector on phase-2 crops (forward only), beside the two train steps.
+PHASES = ("skel", "dyn", "detect")
 MEMORY_KEYS = ("argument_bytes", "output_bytes", "temp_bytes")
 # What each row reports, recorded in every results file (`nmjax.provenance`).
 METRICS = {
     "steps_per_s": "timed steps / (load + compute seconds): the rate a training run sees",
     "frames_per_s": "steps_per_s x B x T: training frames consumed per second",
     "load_s_per_step": "phase 1: wait for the next grain batch plus host -> device placement, "
-    "blocked until ready; phase 2: 0 (crops gathered on the device inside the step)",
+    "blocked until ready; phase 2: cutting the drawn crops on the host; detect: normalising and "
+    "voxelising the crops (`runs.clip_voxels`)",
     "compute_s_per_step": "the compiled step until its outputs are ready, mean over the timed "
     "steps (compute_s_median: their median)",
     "compile_s": "jit(step).lower(...).compile(), timed on its own; the executable then runs",
@@ -226,16 +232,18 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--set dyn:batch_size=")
     parents, order = hand_tree(num_keypoints)
-    table = dyn.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames)
-    poses, starts, key = parallel.replicate((*table, jax.random.key(cfg.seed)), mesh)
+    table = dyn.CropTable(
+        *dyn.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames), cfg.frames
+    )
+    draws = dyn.CropDraws(jax.random.key(cfg.seed), table.num_starts, cfg.batch_size)
+    key = parallel.replicate(jax.random.key(cfg.seed), mesh)
     graphdef, state = dyn.build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
     settings = dyn.StepSettings.of(cfg)
     compiled, compile_s = _timed_compile(
         dyn.train_step,
         state,
-        poses,
-        starts,
+        parallel.global_array(table.batch(draws.at(0)), mesh),
         key,
         jnp.int32(0),
         graphdef=graphdef,
@@ -245,10 +253,12 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
     load, compute = [], []
     for i in range(warmup + steps):
         tic = time.perf_counter()
-        state, metrics = jax.block_until_ready(compiled(state, poses, starts, key, jnp.int32(i)))
+        x = parallel.global_array(table.batch(draws.at(i)), mesh)
+        loaded = time.perf_counter()
+        state, metrics = jax.block_until_ready(compiled(state, x, key, jnp.int32(i)))
         if i >= warmup:
-            load.append(0.0)
-            compute.append(time.perf_counter() - tic)
+            load.append(loaded - tic)
+            compute.append(time.perf_counter() - loaded)
     if not np.isfinite(float(metrics["loss"])):
         raise RuntimeError(f"bench: phase-2 loss became {float(metrics['loss'])}")
     m = cfg.model
@@ -262,8 +272,64 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
         "D_h": m.hidden,
         "compute_dtype": "float32",
     }
-    note = "crops gathered on the device inside the step (no host loading)"
+    note = "crops cut from a table on the host, the draws computed a block of steps at a time"
     return _row("dyn", preset, shape, load, compute, compile_s, memory_of(compiled), note)
+
+
+# --- phase-2 crop detection -------------------------------------------------------------------
+
+
+def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) -> dict[str, Any]:
+    """Times the detector on phase-2 crops of `frames` frames (`cfg` a SkelTrainConfig)."""
+    from flax import nnx
+
+    from nmjax import runs
+    from nmjax.data.datasets import load_sequences
+    from nmjax.data.synthetic import ensure_dataset
+    from nmjax.train import skel
+
+    skel.check_config(cfg)
+    root = ensure_dataset(cfg.data.name, cfg.data.root)  # generated here, untimed
+    rate, b = cfg.data.sample_rate, cfg.data.batch_size
+    clips = [
+        (seq, int(t))
+        for seq in load_sequences(cfg.data.name, "train", root)
+        for t in runs.crop_starts(seq.num_frames, frames, rate)
+    ]
+    graphdef, state = skel.build(cfg)
+    detector = runs.Detector.of(nnx.merge(graphdef, state["model"]), cfg, "bench")
+
+    def voxels(i: int) -> jax.Array:
+        part = [clips[(i * b + j) % len(clips)] for j in range(b)]
+        return jnp.asarray(np.stack([runs.clip_voxels(s, t, frames, cfg.data) for s, t in part]))
+
+    compiled, compile_s = _timed_compile(
+        runs.detect_batch, detector.graphdef, detector.state, voxels(0)
+    )
+    load, compute = [], []
+    for i in range(warmup + steps):
+        tic = time.perf_counter()
+        batch = jax.block_until_ready(voxels(i))
+        toc = time.perf_counter()
+        keypoints = jax.block_until_ready(compiled(detector.state, batch))
+        if i >= warmup:
+            load.append(toc - tic)
+            compute.append(time.perf_counter() - toc)
+    if not np.all(np.isfinite(np.asarray(keypoints))):
+        raise RuntimeError("bench: the detector's keypoints are not finite")
+    m = cfg.model
+    shape = {
+        "data_name": cfg.data.name,
+        "B": b,
+        "T": frames,
+        "G": m.grid,
+        "C": m.channels,
+        "K": m.num_keypoints,
+        "compute_dtype": m.compute_dtype,
+        "conv_form": m.conv_form,
+    }
+    note = "phase-2 crops, each normalised on its own; load = clip_voxels on the host"
+    return _row("detect", preset, shape, load, compute, compile_s, memory_of(compiled), note)
 
 
 # --- command line -----------------------------------------------------------------------------
@@ -283,15 +349,18 @@ def _split_overrides(assignments: Sequence[str], phase: str) -> list[str]:
 
 
 def configs(args: argparse.Namespace, phase: str, preset: str) -> Any:
-    """The preset's config of `phase` with the --set overrides, --compute-dtype and --dyn-model."""
-    if phase == "skel":
+    """The preset's config of `phase` with the --set overrides, --compute-dtype and --dyn-model
+    ("detect" runs the phase-1 preset's detector and takes the skel: overrides)."""
+    if phase in ("skel", "detect"):
         cfg = skel_preset(args.data, preset)
         if args.compute_dtype is not None:
             model = dataclasses.replace(cfg.model, compute_dtype=args.compute_dtype)
             cfg = dataclasses.replace(cfg, model=model)
     else:
         cfg = dyn_preset(args.data, preset)
-    return apply_overrides(cfg, _split_overrides(args.overrides, phase))
+    return apply_overrides(
+        cfg, _split_overrides(args.overrides, "skel" if phase == "detect" else phase)
+    )
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
@@ -305,7 +374,7 @@ def format_table(rows: list[dict[str, Any]]) -> str:
     for r in rows:
         mem = r["memory"]
         peak = mem.get("peak_bytes_in_use", mem.get("peak_rss_bytes", 0)) / 2**20
-        label = r["preset"] if r["phase"] == "skel" else f"{r['preset']}/{r['model']}"
+        label = r["preset"] if r["phase"] != "dyn" else f"{r['preset']}/{r['model']}"
         lines.append(
             f"{r['phase']:<5} {label:<12} {r['compute_dtype']:<8} {r['B']:>3} {r['T']:>3} "
             f"{r['steps_per_s']:>9.3f} {r['frames_per_s']:>9.2f} {r['load_s_per_step']:>8.4f} "
@@ -345,6 +414,9 @@ def run_job(args: argparse.Namespace, phase: str, preset: str, model: str | None
     cfg = configs(args, phase, preset)
     if phase == "skel":
         return bench_skel(cfg, preset, args.steps, args.warmup)
+    if phase == "detect":
+        frames = dyn_preset(args.data, preset).frames
+        return bench_detect(cfg, preset, frames, args.steps, args.warmup)
     k = args.keypoints or dataset_spec(args.data).num_keypoints
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=model))
     return bench_dyn(cfg, preset, k, args.steps, args.warmup)

@@ -144,7 +144,7 @@ class Detector:
 
     def keypoints(self, voxels: np.ndarray) -> np.ndarray:
         """Keypoints (C, T, K, 4) of crops (C, T, G, G, G), without the reconstruction."""
-        return np.concatenate(self._batches(voxels, _detect))[: len(voxels)]
+        return np.concatenate(self._batches(voxels, detect_batch))[: len(voxels)]
 
     def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
         """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
@@ -160,7 +160,10 @@ def _forward(graphdef, state, voxels):
 
 
 @functools.partial(jax.jit, static_argnames="graphdef")
-def _detect(graphdef, state, voxels):
+def detect_batch(graphdef, state, voxels):
+    """Keypoints (B, T, K, 4) of crops (B, T, G, G, G): the detector's forward without the
+    decoder, compiled once per shape (what `Detector.keypoints` and `nmjax bench --phase detect`
+    run)."""
     return nnx.merge(graphdef, state).detect(voxels)[1]
 
 
@@ -352,32 +355,74 @@ def validation_clips(seqs: list[Any], frames: int, sample_rate: int) -> list[tup
     return clips
 
 
-def crop_inputs(
-    detector: Detector, train: list[Any], test: list[Any], frames: int, progress: bool = True
-) -> dyn.Phase2Inputs:
-    """The "crop" phase-2 inputs: the detector on every crop, each normalised on its own.
+class DetectedCrops:
+    """The "crop" route's training crops: the detector on each crop (`detect_clips`, normalised
+    on its own box), run when a batch first draws the crop and kept for every later draw.
 
-    Training: one crop of `frames` frames at every start of every training sequence
-    (`crop_starts`), the crops the release's random crop draws from; the step samples them
-    uniformly. Validation: `validation_clips` of the test sequences, and for their generation the
-    first T_cond frames of each clip detected on their own (`Dynamics.generate`'s conditioning,
-    as in the release). Costs one detector pass over (number of starts) x `frames` frames.
+    Detector frame passes: at most min(starts, crops drawn) x frames, and none before the first
+    step. A crop's keypoints depend on nothing but its (sequence, start), so a resumed run, which
+    starts with none kept, recomputes the same ones.
+
+    Args:
+      detector: the phase-1 run's detector.
+      clips: [(Sequence, start frame)] every training crop the steps draw from.
+      frames: T of phase 2.
+    """
+
+    def __init__(self, detector: Detector, clips: list[tuple[Any, int]], frames: int):
+        self.detector, self.clips, self.frames = detector, clips, frames
+        self._kept: dict[int, np.ndarray] = {}
+
+    @property
+    def num_starts(self) -> int:
+        return len(self.clips)
+
+    @property
+    def num_keypoints(self) -> int:
+        return self.detector.cfg.model.num_keypoints
+
+    @property
+    def detected(self) -> int:
+        """Crops detected so far (each once): the detector ran on `detected x frames` frames."""
+        return len(self._kept)
+
+    def batch(self, chosen: np.ndarray) -> np.ndarray:
+        """(B, T, K, 4): the crops at indices `chosen` (B,), detecting the new ones together."""
+        chosen = [int(i) for i in chosen]
+        new = sorted(set(chosen) - self._kept.keys())
+        if new:
+            found = detect_clips(self.detector, [self.clips[i] for i in new], self.frames)
+            self._kept.update(zip(new, found, strict=True))
+        return np.stack([self._kept[i] for i in chosen])
+
+    def postfix(self) -> dict[str, str]:
+        """For the progress bar: crops detected so far of the starts."""
+        return {"crops_detected": f"{self.detected}/{self.num_starts}"}
+
+
+def crop_inputs(
+    detector: Detector, train: list[Any], test: list[Any], frames: int
+) -> dyn.Phase2Inputs:
+    """The "crop" phase-2 inputs: the detector on each crop, each normalised on its own.
+
+    Training: a crop of `frames` frames at every start of every training sequence
+    (`crop_starts`), the crops the release's random crop draws from; the steps draw them
+    uniformly and each is detected when first drawn (`DetectedCrops`). Validation: the
+    `validation_clips` of the test sequences (at most 64), detected now, and for their generation
+    the first T_cond frames of each clip detected on their own (`Dynamics.generate`'s
+    conditioning, as in the release).
 
     Args:
       detector: the phase-1 run's detector.
       train, test: the `Sequence`s of the two splits.
       frames: T of phase 2.
-      progress: a tqdm bar over the training crops.
     """
     rate = detector.cfg.data.sample_rate
     clips = [(seq, int(t)) for seq in train for t in crop_starts(seq.num_frames, frames, rate)]
-    crops = detect_clips(
-        detector, clips, frames, desc="phase-2 inputs: detector on every crop" if progress else None
-    )
     val = validation_clips(test, frames, rate)
     val_x = detect_clips(detector, val, frames)
     val_cond = detect_clips(detector, val, frames, detect=dyn.condition_frames(frames))
-    return dyn.crop_inputs_of(crops, val_x, val_cond)
+    return dyn.Phase2Inputs(DetectedCrops(detector, clips, frames), val_x, val_cond)
 
 
 def split_sequences(detector: Detector, split: str) -> dict[str, Any]:
@@ -648,7 +693,7 @@ def train_dynamics(
     `dyn.train`. The resolved phase-1 folder is stored in the run's config.json.
 
     Reads the run's skeleton and, by `cfg.inputs`, its detector and dataset ("crop": the
-    detector runs on every crop once the run folder is accepted, `crop_inputs`) or its exported
+    detector runs on each crop when a batch first draws it, `crop_inputs`) or its exported
     keypoints ("sequence"). Everything that can be refused is checked before the run folder is
     made.
     """
@@ -681,7 +726,7 @@ def train_dynamics(
         seqs = {split: list(split_sequences(detector, split).values()) for split in SPLITS}
 
         def inputs() -> dyn.Phase2Inputs:
-            return crop_inputs(detector, seqs["train"], seqs["test"], cfg.frames, progress)
+            return crop_inputs(detector, seqs["train"], seqs["test"], cfg.frames)
 
     train_count = len(trajectories["train"]) if cfg.inputs == "sequence" else len(seqs["train"])
     cfg = resolve_epochs(cfg, train_count, cfg.batch_size)

@@ -715,6 +715,7 @@ def train_loop(
     progress: bool = True,
     desc: str | None = None,
     step_hook: Callable[[int, Any], Any] | None = None,
+    postfix: Callable[[], dict[str, str]] | None = None,
 ) -> LoopEnd:
     """The one training loop of both phases: resume, step, log, validate, checkpoint, stop on NaN.
 
@@ -742,6 +743,8 @@ def train_loop(
       data_iter: the grain iterator saved with each checkpoint (exact resume), if any.
       progress, desc: the tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step.
+      postfix: `() -> {name: text}` shown on the bar beside the loss at every log (what the
+        inputs are doing, e.g. phase 2's crops detected so far).
 
     Returns:
       `LoopEnd`: the resumed step, the steps taken, the final state, the last validation.
@@ -771,6 +774,7 @@ def train_loop(
                 progress=progress,
                 desc=desc,
                 step_hook=step_hook,
+                postfix=postfix,
             )
         finally:
             writer.close()
@@ -792,6 +796,7 @@ def _run_steps(
     progress: bool,
     desc: str | None,
     step_hook: Callable[[int, Any], Any] | None,
+    postfix: Callable[[], dict[str, str]] | None = None,
 ) -> tuple[int, Any, dict[str, float]]:
     """`train_loop`'s steps from `start` with an open checkpointer and writer: (steps taken,
     final state, the last validation scalars)."""
@@ -829,7 +834,9 @@ def _run_steps(
                 t_last, step_last = now, step
                 writer.write_scalars(step, logged)
                 pbar.set_postfix(
-                    loss=f"{logged['train/loss']:.4g}", steps_s=f"{logged['train/steps_per_s']:.2f}"
+                    loss=f"{logged['train/loss']:.4g}",
+                    steps_s=f"{logged['train/steps_per_s']:.2f}",
+                    **(postfix() if postfix is not None else {}),
                 )
             val_metrics = None
             if val:

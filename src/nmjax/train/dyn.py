@@ -5,18 +5,19 @@ Inputs come from a phase-1 run folder (contract C10, read by `nmjax.runs`): `ske
 (`DynTrainConfig.inputs`, both a `Phase2Inputs`):
 
 - "crop" (the release's): every T-frame training crop normalised with its own bounding box and
-  run through the detector (`nmjax.runs.crop_inputs`, laid out by `crop_inputs_of`). The
-  keypoints of a crop depend on nothing but its start frame (the detector is frozen, phase 2
-  does not augment), so they are computed once per start before training instead of by a
-  detector forward inside every step: the inputs the release's step computes, at the cost of one
-  detector pass over every crop instead of one per step and crop.
+  run through the detector (`nmjax.runs.DetectedCrops`). The keypoints of a crop depend on
+  nothing but its start frame (the detector is frozen, phase 2 does not augment), so each crop
+  is detected when a batch first draws it and kept: the inputs the release's step computes, at
+  most one detector pass per start (never more than the crops drawn), and no wait before the
+  first step.
 - "sequence": crops cut from the whole-sequence trajectories of `keypoints_{train,test}.npz`
-  (`sequence_inputs`), the named fast route that needs no detector.
+  (`sequence_inputs`, a `CropTable`), the named fast route that needs no detector.
 
-Training crops are drawn inside the compiled step from the crop table with the key
-fold_in(seed key, step), so a resumed run sees exactly the batches of an uninterrupted one without
-saving a data-iterator state. The step and the loop are those of phase 1 (`common.train_loop`);
-only `loss_fn` and the data differ.
+The crops of step s are the starts drawn with the key fold_in(seed key, s) (`crop_draws`, a block
+of steps at a time on the host, so a lazily detected crop is known before its step runs), so a
+resumed run sees exactly the batches of an uninterrupted one without saving a data-iterator
+state. The step and the loop are those of phase 1 (`common.train_loop`); only `loss_fn` and the
+data differ.
 
 Loss: Eq. 3 (`losses.vrnn_reconstruction`) + kl_weight * Eq. 4, the KL reduced as the authors'
 release reduces it: the mean over batch, time and latent dimension of the per-dimension KL
@@ -31,7 +32,7 @@ import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -69,12 +70,99 @@ def crop_table(trajectories: dict[str, np.ndarray], frames: int) -> tuple[np.nda
     return np.concatenate(pieces).astype(np.float32), np.concatenate(starts).astype(np.int32)
 
 
-def sample_crops(
-    poses: jax.Array, starts: jax.Array, key: jax.Array, batch_size: int, frames: int
+class CropTable(NamedTuple):
+    """Training crops cut from a table of poses (the "sequence" route, `crop_table`).
+
+    Attributes:
+      poses: (F, K, 4); starts: (S,) int32, `poses[s:s + frames]` is a crop for every s.
+      frames: T.
+    """
+
+    poses: np.ndarray
+    starts: np.ndarray
+    frames: int
+
+    @property
+    def num_starts(self) -> int:
+        return len(self.starts)
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.poses.shape[1])
+
+    def batch(self, chosen: np.ndarray) -> np.ndarray:
+        """(B, T, K, 4): the crops of the starts at indices `chosen` (B,)."""
+        return self.poses[self.starts[chosen][:, None] + np.arange(self.frames)]
+
+
+class TrainingCrops(Protocol):
+    """What the step's batches are cut from: `CropTable`, or the detector on each crop
+    (`nmjax.runs.DetectedCrops`)."""
+
+    @property
+    def num_starts(self) -> int: ...
+
+    @property
+    def num_keypoints(self) -> int: ...
+
+    def batch(self, chosen: np.ndarray) -> np.ndarray: ...
+
+
+# Steps whose draws `CropDraws` computes at once: one small program per block instead of a
+# host-device round trip per step.
+DRAW_BLOCK = 256
+
+
+@functools.partial(jax.jit, static_argnames=("batch_size", "count"))
+def crop_draws(
+    base_key: jax.Array,
+    first_step: jax.Array,
+    num_starts: jax.Array,
+    *,
+    batch_size: int,
+    count: int,
 ) -> jax.Array:
-    """A batch (B, T, K, 4) of crops with start frames drawn uniformly from `starts` (jittable)."""
-    chosen = starts[jax.random.randint(key, (batch_size,), 0, starts.shape[0])]
-    return poses[chosen[:, None] + jnp.arange(frames)]
+    """(count, B) indices into the starts, drawn uniformly for steps first_step, ... (jittable).
+
+    Step s draws with the first half of split(fold_in(base_key, s)); the step's model noise uses
+    the second half (`train_step`), so the draws depend on nothing but the seed and the step.
+    """
+
+    def draw(step: jax.Array) -> jax.Array:
+        key_data, _ = jax.random.split(jax.random.fold_in(base_key, step))
+        return jax.random.randint(key_data, (batch_size,), 0, num_starts)
+
+    return jax.vmap(draw)(first_step + jnp.arange(count, dtype=jnp.int32))
+
+
+class CropDraws:
+    """The start indices each step draws (`crop_draws`), computed a block of steps at a time."""
+
+    def __init__(
+        self, base_key: jax.Array, num_starts: int, batch_size: int, block: int = DRAW_BLOCK
+    ):
+        self.base_key, self.num_starts, self.batch_size, self.block = (
+            base_key,
+            num_starts,
+            batch_size,
+            block,
+        )
+        self._first, self._draws = -1, np.zeros((0, batch_size), np.int32)
+
+    def at(self, step: int) -> np.ndarray:
+        """(B,) the indices step `step` draws."""
+        if not self._first <= step < self._first + len(self._draws):
+            self._first = step - step % self.block
+            self._draws = np.asarray(
+                crop_draws(
+                    self.base_key,
+                    jnp.int32(self._first),
+                    jnp.int32(self.num_starts),
+                    batch_size=self.batch_size,
+                    count=self.block,
+                )
+            )
+        return self._draws[step - self._first]
 
 
 def validation_crops(trajectories: dict[str, np.ndarray], frames: int) -> np.ndarray:
@@ -90,15 +178,13 @@ class Phase2Inputs(NamedTuple):
     """What phase 2 trains and validates on, whichever `DynTrainConfig.inputs` made it.
 
     Attributes:
-      poses: (F, K, 4) crop table; starts: (S,) int32, `poses[s:s + T]` is a training crop for
-        every s in starts (`sample_crops` draws them uniformly).
+      crops: the training crops (`TrainingCrops`); each step draws B of its starts uniformly.
       val: (V, T, K, 4) validation crops.
       val_cond: (V, T_cond, K, 4) the keypoints the validation generation conditions on
         (T_cond = `condition_frames(T)`).
     """
 
-    poses: np.ndarray
-    starts: np.ndarray
+    crops: TrainingCrops
     val: np.ndarray
     val_cond: np.ndarray
 
@@ -117,20 +203,7 @@ def sequence_inputs(trajectories: dict[str, dict[str, np.ndarray]], frames: int)
     """
     poses, starts = crop_table(trajectories["train"], frames)
     val = validation_crops(trajectories["test"], frames)
-    return Phase2Inputs(poses, starts, val, val[:, : condition_frames(frames)])
-
-
-def crop_inputs_of(crops: np.ndarray, val: np.ndarray, val_cond: np.ndarray) -> Phase2Inputs:
-    """The "crop" route: a table of precomputed crops (C, T, K, 4), one start per crop.
-
-    The crops are laid end to end in time, so the step samples them exactly as it samples
-    windows of whole sequences (starts 0, T, 2T, ...).
-    """
-    count, frames = crops.shape[:2]
-    poses = np.asarray(crops, np.float32).reshape(count * frames, *crops.shape[2:])
-    starts = (np.arange(count) * frames).astype(np.int32)
-    val, val_cond = np.asarray(val, np.float32), np.asarray(val_cond, np.float32)
-    return Phase2Inputs(poses, starts, val, val_cond)
+    return Phase2Inputs(CropTable(poses, starts, frames), val, val[:, : condition_frames(frames)])
 
 
 # --- loss and step ----------------------------------------------------------------------------
@@ -174,18 +247,18 @@ class StepSettings:
 @functools.partial(
     jax.jit, static_argnames=("graphdef", "settings", "mesh"), donate_argnames="state"
 )
-def train_step(state, poses, starts, base_key, step, *, graphdef, settings: StepSettings, mesh):
+def train_step(state, x, base_key, step, *, graphdef, settings: StepSettings, mesh):
     """One data-parallel optimizer step of Eq. 3 + kl_weight * Eq. 4.
 
-    The crops are gathered from the (replicated) table inside the step and sharded over the
-    mesh's "data" axis, so each device runs the model on B / devices crops; the state and the
-    metrics stay replicated.
+    The batch is sharded over the mesh's "data" axis, so each device runs the model on
+    B / devices crops; the state and the metrics stay replicated.
 
     Args:
       state: {"model": nnx.State of the model, "opt": optax state of its nnx.Param} (donated).
-      poses, starts: the crop table of `crop_table`.
-      base_key: the run's key; the step uses fold_in(base_key, step) for its batch and noise, so
-        it depends on nothing but its arguments (exact resume).
+      x: (B, T, K, 4) the crops this step drew (`CropDraws.at(step)`).
+      base_key: the run's key; the step's model noise is the second half of
+        split(fold_in(base_key, step)) (the first drew the crops), so it depends on nothing but
+        its arguments (exact resume).
       step: int32 scalar, the number of steps already taken.
       graphdef: the model's nnx.GraphDef (static; equal for equal configurations, so a new run of
         the same configuration reuses the compiled step).
@@ -196,8 +269,7 @@ def train_step(state, poses, starts, base_key, step, *, graphdef, settings: Step
       (new state, metrics dict of scalars).
     """
     model = nnx.merge(graphdef, state["model"])
-    key_data, key_model = jax.random.split(jax.random.fold_in(base_key, step))
-    x = sample_crops(poses, starts, key_data, settings.batch_size, settings.frames)
+    _, key_model = jax.random.split(jax.random.fold_in(base_key, step))
     x = parallel.constrain_batch(x, mesh)
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (_, metrics), grads = grad_fn(model, x, key_model, settings.kl_weight)
@@ -210,7 +282,7 @@ def make_train_step(
     graphdef: nnx.GraphDef, cfg: DynTrainConfig, mesh: jax.sharding.Mesh | None = None
 ) -> Callable[..., Any]:
     """`train_step` bound to a model, configuration and mesh (default: all devices):
-    `(state, poses, starts, key, step)`."""
+    `(state, x, key, step)`."""
     mesh = parallel.data_mesh() if mesh is None else mesh
     return functools.partial(
         train_step, graphdef=graphdef, settings=StepSettings.of(cfg), mesh=mesh
@@ -299,7 +371,7 @@ def check_config(cfg: DynTrainConfig) -> None:
 def check_inputs(inputs: Phase2Inputs, num_keypoints: int) -> None:
     """Refuses inputs whose keypoint count differs from the skeleton's (`nmjax.runs` checks the
     phase-1 run's files before a run folder is made; this guards other callers)."""
-    k = {inputs.poses.shape[1], inputs.val.shape[2], inputs.val_cond.shape[2]}
+    k = {inputs.crops.num_keypoints, inputs.val.shape[2], inputs.val_cond.shape[2]}
     if k != {num_keypoints}:
         raise ValueError(
             f"the phase-2 inputs have K={sorted(k)} keypoints but the skeleton has "
@@ -322,8 +394,9 @@ def train(
       cfg: the configuration; `cfg.skel_run` names the phase-1 run the inputs come from (stored
         in config.json, so later tasks rebuild the model from the run folder alone).
       skeleton: (parents, order) of the phase-1 run (`nmjax.runs.read_skeleton`).
-      inputs: makes the `Phase2Inputs` (`sequence_inputs`, or `nmjax.runs.crop_inputs` with its
-        detector passes); called once the run folder is accepted, so a refused run costs nothing.
+      inputs: makes the `Phase2Inputs` (`sequence_inputs`, or `nmjax.runs.crop_inputs`, whose
+        crops are detected as batches draw them); called once the run folder is accepted, so a
+        refused run costs nothing.
       resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
         `cfg` only in `common.RESUMABLE_FIELDS`.
       progress: show a tqdm bar.
@@ -346,17 +419,19 @@ def train(
     data = inputs()
     check_inputs(data, len(parents))
 
-    # Every host holds the whole crop table and validation set: replicated global arrays.
-    poses, starts, val_x, val_cond, base_key, val_key = parallel.replicate(
-        (*data, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
+    # Every host draws the same crops and holds the validation set: replicated global arrays.
+    val_x, val_cond, base_key, val_key = parallel.replicate(
+        (data.val, data.val_cond, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
     )
+    draws = CropDraws(jax.random.key(cfg.seed), data.crops.num_starts, cfg.batch_size)
     graphdef, state = build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
     history: list[dict[str, float]] = []
 
     def train_step(state: Any, step: int) -> tuple[Any, dict[str, jax.Array]]:
-        return step_fn(state, poses, starts, base_key, np.int32(step))
+        x = parallel.global_array(data.crops.batch(draws.at(step)), mesh)
+        return step_fn(state, x, base_key, np.int32(step))
 
     def validate(step: int, state: Any) -> dict[str, float]:
         metrics, generated = eval_step(state, val_x, val_cond, val_key, graphdef=graphdef)
@@ -385,5 +460,6 @@ def train(
         progress=progress,
         desc="train-dyn",
         step_hook=step_hook,
+        postfix=getattr(data.crops, "postfix", None),
     )
     return run_dir, history

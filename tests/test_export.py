@@ -246,6 +246,10 @@ def test_file_axes_put_the_data_up_axis_on_plus_y(up_axis):
     np.testing.assert_allclose(axes @ axes.T, np.eye(3), atol=1e-12)
     assert np.linalg.det(axes) == pytest.approx(1.0)
     np.testing.assert_allclose(axes @ np.eye(3)[up_axis], [0.0, 1.0, 0.0])
+    from nmjax.view import view_axes  # the side `nmjax view` shows becomes the front (+Z)
+
+    up, towards, right = view_axes(up_axis)
+    np.testing.assert_allclose(axes, np.stack([right, up, towards]))
 
 
 # --- a retarget output: the skinned, animated character -----------------------------------------

@@ -196,13 +196,13 @@ def compose(
 def file_axes(up_axis: int) -> np.ndarray:
     """(3, 3) rotation from data axes with up axis `up_axis` to the file's (+Y up, +Z front).
 
-    Rows: the data's rightwards, up and towards-the-viewer directions of `nmjax view`
-    (`nmjax.view.view_axes`), which become +X, +Y and +Z.
+    Rows: the data's rightwards, up and towards-the-viewer directions, which become +X, +Y and
+    +Z; the same directions as `nmjax view` lays its scenes out in (`nmjax.view.view_axes`,
+    which imports this module's readers, so the three lines are repeated here).
     """
-    from nmjax.view import view_axes  # plain NumPy; viser is imported only by a viewer
-
-    up, towards, right = view_axes(up_axis)
-    return np.stack([right, up, towards])
+    eye = np.eye(3)
+    up, towards = eye[up_axis], -eye[(up_axis + 2) % 3]
+    return np.stack([np.cross(up, towards), up, towards])
 
 
 def transform(rig: Rig, axes: np.ndarray) -> Rig:

@@ -49,6 +49,12 @@ BAD_INPUTS = {
     "evaluate": [(["--run", MISSING], MISSING), (["--run", MISSING, "--rates", "x"], "--rates")],
     "bench": [(["--preset", "nope"], "nope"), (["--steps", "0"], "--steps")],
     "view": [(["--run", MISSING], MISSING), (["--run", MISSING, "--port", "-1"], "--port")],
+    "export": [
+        (["--run", MISSING, "--out", "rig.glb"], MISSING),
+        (["--run", MISSING, "--out", "rig.fbx"], "'.fbx'"),
+        (["--run", MISSING], "--out"),
+        (["--run", MISSING, "--out", "rig.bvh", "--fps", "0"], "--fps"),
+    ],
 }
 
 

@@ -30,14 +30,26 @@ class DatasetSpec:
     w_local: float
     epochs: int = 200  # phase-1 length in the release's train.py (AIST++ 200, D-FAUST 2,000)
     synthetic: bool = False
+    # Frames per second of the source sequences (before `sample_rate`): AIST++ and D-FAUST are
+    # recorded at 60; the others state no rate, so 30 is assumed (`nmjax export --fps` overrides).
+    fps: float = 30.0
 
 
 DATASETS: dict[str, DatasetSpec] = {
     spec.name: spec
     for spec in (
-        DatasetSpec("aist", 2, 24, 1.5, (60, 140), w_vol=10.0, w_traj=1.0, w_local=1e-3),
+        DatasetSpec("aist", 2, 24, 1.5, (60, 140), w_vol=10.0, w_traj=1.0, w_local=1e-3, fps=60.0),
         DatasetSpec(
-            "dfaust", 5, 24, 1.5, (600, 1400), w_vol=10.0, w_traj=1.0, w_local=1e-3, epochs=2000
+            "dfaust",
+            5,
+            24,
+            1.5,
+            (600, 1400),
+            w_vol=10.0,
+            w_traj=1.0,
+            w_local=1e-3,
+            epochs=2000,
+            fps=60.0,
         ),
         DatasetSpec("hanco", 1, 28, 1.0, (120, 170), w_vol=0.1, w_traj=1e-6, w_local=1.0),
         DatasetSpec("panda", 1, 12, 1.5, (60, 140), w_vol=10.0, w_traj=1e-3, w_local=1.0),
@@ -100,6 +112,12 @@ def dataset_spec(name: str) -> DatasetSpec:
     if name not in DATASETS:
         raise ValueError(f"unknown dataset {name!r}; valid names: {', '.join(sorted(DATASETS))}")
     return DATASETS[name]
+
+
+def frame_rate(name: str, sample_rate: int) -> float:
+    """Frames per second of a run's keypoint sequences: every `sample_rate`-th frame of dataset
+    `name` (its `DatasetSpec.fps`)."""
+    return dataset_spec(name).fps / sample_rate
 
 
 @dataclass(frozen=True)

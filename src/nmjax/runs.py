@@ -566,6 +566,15 @@ def read_skeleton(run: str | Path) -> Skeleton:
         raise ValueError(f"{err}; {fix}") from err
 
 
+def motion_format(run: str | Path) -> tuple[float, int]:
+    """(frames per second, up axis 0/1/2) of a phase-1 run's keypoint sequences, from its data
+    configuration (`config.frame_rate`)."""
+    from nmjax.config import frame_rate
+
+    data = common.load_config(run, SkelTrainConfig).data
+    return frame_rate(data.name, data.sample_rate), data.up_axis
+
+
 def skeleton_intensities(run: str | Path) -> np.ndarray | None:
     """The mean keypoint intensities stored beside the tree in skeleton.json, if any."""
     values = json.loads((Path(run) / SKELETON_FILE).read_text()).get("intensities")

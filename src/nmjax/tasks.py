@@ -378,6 +378,34 @@ def retarget_mesh(
     Returns:
       deformed vertices (T, V, 3) and retargeted joints (T, K, 3).
     """
+    rest, joints, rotations = retarget_pose(
+        target_joints,
+        target_rotations,
+        source_rotations,
+        source_root,
+        directions,
+        parents,
+        order,
+    )
+    return retarget_vertices(vertices, weights, target_joints, rest, joints, rotations), joints
+
+
+def retarget_pose(
+    target_joints: jax.Array,
+    target_rotations: jax.Array,
+    source_rotations: jax.Array,
+    source_root: jax.Array,
+    directions: jax.Array,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """The joint transforms of `retarget_mesh`: the target's rest rotations and the retargeted
+    motion's joints and global rotations (arguments as there).
+
+    Returns:
+      rest global rotations (K, 3, 3), joints (T, K, 3) and global rotations (T, K, 3, 3); LBS
+      moves joint k's part of the mesh by v -> R_k,t R_k,rest^T (v - mu_k,rest) + mu_k,t.
+    """
     root = order[0]
     _, pose = retarget_joints(
         target_joints[root][None], target_rotations[None], directions, target_joints, parents, order
@@ -387,7 +415,7 @@ def retarget_mesh(
     joints, rotations = retarget_joints(
         path, source_rotations, directions, target_joints, parents, order
     )
-    return retarget_vertices(vertices, weights, target_joints, rest, joints, rotations), joints
+    return rest, joints, rotations
 
 
 # --- meshes ---------------------------------------------------------------------------------
@@ -677,6 +705,18 @@ class Interpolators:
 # --- generate -------------------------------------------------------------------------------
 
 
+def rig_arrays(skel_run: Path, num_keypoints: int) -> dict[str, np.ndarray]:
+    """What `nmjax export` needs beside a task's motions: "frame_rate" and "up_axis" of the
+    phase-1 run's sequences and "keep", the (K,) nodes its skeleton keeps."""
+    frame_rate, up_axis = runs.motion_format(skel_run)
+    kept = runs.pruned_skeleton(skel_run)
+    return {
+        "frame_rate": np.float64(frame_rate),
+        "up_axis": np.int64(up_axis),
+        "keep": np.ones(num_keypoints, bool) if kept is None else kept[1],
+    }
+
+
 def run_generate(
     run: str | Path,
     *,
@@ -733,6 +773,7 @@ def run_generate(
         names=np.array(names),
         parents=np.array(model.parents),
         cond=np.int32(cond),
+        **rig_arrays(skel_run, len(model.parents)),
     )
     if voxels:
         detector = runs.Detector.load(skel_run)
@@ -795,6 +836,7 @@ def run_interpolate(
         names=np.array(names),
         parents=np.array(model.parents),
         **results,
+        **rig_arrays(skel_run, len(model.parents)),
     )
     for i, name in enumerate(names):
         motions = [truth[i]] + [results[m][i] for m in methods]
@@ -890,9 +932,7 @@ def run_retarget(
     tar_rot, _ = infer_rotations_jit(graphdef, state, tar_in, key_tar)
     parents, order, root = model.parents, model.order, model.order[0]
     weights = skin_weights(vertices, target_kp[:, :3], skeleton, intensities=intensities)
-    moved, joints = retarget_mesh(
-        jnp.asarray(vertices, jnp.float32),
-        jnp.asarray(weights),
+    rest, joints, rotations = retarget_pose(
         jnp.asarray(target_kp[:, :3]),
         tar_rot[0, 0],
         src_rot[0],
@@ -901,20 +941,39 @@ def run_retarget(
         parents,
         order,
     )
-    moved_mesh = (np.asarray(moved, np.float64) + 1.0) / scale + bmin  # back to mesh units
+    moved = retarget_vertices(
+        jnp.asarray(vertices, jnp.float32),
+        jnp.asarray(weights),
+        jnp.asarray(target_kp[:, :3]),
+        rest,
+        joints,
+        rotations,
+    )
+
+    def to_mesh(x) -> np.ndarray:  # the normalised frame back to the mesh's units
+        return (np.asarray(x, np.float64) + 1.0) / scale + bmin
+
+    moved_mesh = to_mesh(moved)
     faces = np.asarray(mesh.faces)
     for t, verts in enumerate(moved_mesh):
         write_obj(out / RETARGET_FRAME.format(t), verts, faces)
-    joints_mesh = (np.asarray(joints) + 1.0) / scale + bmin
     src_mu = np.asarray(x_src[0])
     atomic.save_npz(
         out / RETARGET_FILE,
         source_keypoints=src_mu,
         target_keypoints=target_kp,
-        joints=joints_mesh.astype(np.float32),
+        joints=to_mesh(joints).astype(np.float32),
         skin_weights=weights,
         parents=np.array(parents),
         source=np.array(name),
+        # The rig (`nmjax export`): LBS moves joint k's part of the mesh rigidly from its rest
+        # transform (rest_rotations, rest_joints) to its transform at t (rotations, joints).
+        rotations=np.asarray(rotations, np.float32),
+        rest_rotations=np.asarray(rest, np.float32),
+        rest_joints=to_mesh(target_kp[:, :3]).astype(np.float32),
+        rest_vertices=np.asarray(mesh.vertices, np.float32),
+        faces=faces.astype(np.int64),
+        **rig_arrays(skel_run, len(parents)),
     )
     # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
     sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)

@@ -1,6 +1,6 @@
 """`nmjax view`: a run folder as a 3D scene in the browser, frame by frame (viser).
 
-Three kinds of folder, told apart by what they hold:
+Four kinds of input, told apart by what they hold:
 
 - a phase-1 run (`nmjax train-skel`): one sequence of a split with its points (or occupied
   voxels), the detector's keypoints of every frame (colour by index, size by intensity alpha,
@@ -12,7 +12,10 @@ Three kinds of folder, told apart by what they hold:
   generated continuations side by side, and below them the interpolation of a gap by the model
   beside the Lerp and Slerp baselines (and the positional VRNN when a run of it lies beside);
 - a retarget output folder (`nmjax retarget`): the posed target mesh of every frame with its
-  retargeted joints, beside the source motion.
+  retargeted joints, beside the source motion;
+- a glTF file written by `nmjax export` (.glb / .gltf): its skeleton and skinned mesh posed at
+  every key of its animation by glTF's own rules (`nmjax.export.gltf.read`), so a file can be
+  checked before it is sent on.
 
 Everything drawn comes from the run-folder readers (`nmjax.runs`) and the task functions
 (`nmjax.tasks`); nothing here runs a model of its own. viser is imported only when a viewer
@@ -369,8 +372,12 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
     )
 
 
+GLTF_SUFFIXES = (".glb", ".gltf")
+
+
 def folder_kind(folder: str | Path) -> str:
-    """What `folder` holds: "skel" (a phase-1 run), "dyn" (phase 2) or "retarget".
+    """What `folder` holds: "skel" (a phase-1 run), "dyn" (phase 2) or "retarget"; "gltf" for
+    a .glb / .gltf file.
 
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
@@ -379,10 +386,13 @@ def folder_kind(folder: str | Path) -> str:
     from nmjax.train import common
 
     folder = Path(folder)
+    if folder.is_file() and folder.suffix.lower() in GLTF_SUFFIXES:
+        return "gltf"
     if not folder.is_dir():
         raise FileNotFoundError(
             f"--run {folder} does not exist; give a run folder of `nmjax train-skel` or "
-            "`nmjax train-dyn`, or an output folder of `nmjax retarget`"
+            "`nmjax train-dyn`, an output folder of `nmjax retarget`, or a .glb / .gltf file "
+            "of `nmjax export`"
         )
     if (folder / common.CONFIG_FILE).is_file():
         return runs.run_kind(folder)
@@ -881,6 +891,56 @@ class RetargetViewer(Viewer):
         self.source_pose.show(self.source[clamp_frame(t, len(self.source))])
 
 
+class GltfViewer(Viewer):
+    """A glTF file of `nmjax export`: its skeleton (keypoint colours by the k of `joint_<k>`)
+    and its skinned mesh, at every key of its animation; playback at the file's frame rate."""
+
+    kind = "glTF file"
+
+    def __init__(self, server: Any, path: Path, data: Any, up_axis: int):
+        super().__init__(server, str(path), up_axis)
+        self.data = data
+        cloud = data.positions if data.vertices is None else data.vertices
+        lo, hi = cloud.reshape(-1, 3).min(axis=0), cloud.reshape(-1, 3).max(axis=0)
+        centre, extent = (lo + hi) / 2.0, max(float(np.max(hi - lo)), 1e-6)
+        self.mesh = None
+        if data.vertices is not None:
+            self.mesh = self.add(
+                "add_mesh_simple",
+                "/gltf/mesh",
+                vertices=data.vertices[0].astype(np.float32),
+                faces=data.faces,
+                color=MESH_COLOR,
+                opacity=0.75,
+                side="double",
+            )
+        indices = [_keypoint_index(name, j) for j, name in enumerate(data.names)]
+        colors = keypoint_colors(max(indices) + 1)[indices]
+        self.pose = Pose(self, "/gltf", data.parents, 0, colors=colors, radius=0.02 * extent)
+        self.toggle("mesh", lambda: [] if self.mesh is None else [self.mesh])
+        self.toggle("skeleton", lambda: self.pose.handles)
+        if len(data.times) > 1:
+            rate = 1.0 / float(np.median(np.diff(data.times)))
+            self.fps.value = int(np.clip(round(rate), self.fps.min, self.fps.max))
+        self.look_at(centre, 1.6 * extent)
+        self.reset_frames()
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.data.times)
+
+    def draw(self, t: int) -> None:
+        if self.mesh is not None:
+            self.mesh.vertices = self.data.vertices[t].astype(np.float32)
+        self.pose.show(self.data.positions[t])
+
+
+def _keypoint_index(name: str, default: int) -> int:
+    """k of a joint named `joint_<k>`; `default` for any other name."""
+    prefix, _, number = name.rpartition("_")
+    return int(number) if prefix == "joint" and number.isdigit() else default
+
+
 def _unit_cylinder():
     """A trimesh cylinder of radius 1 and height 1 along z, centred at the origin."""
     import trimesh
@@ -963,7 +1023,8 @@ def open_view(
     """Reads `folder` and starts a viewer of it on `host`:`port`; `stop()` ends it.
 
     Everything is read and checked before the port is taken. `up` ("x", "y" or "z") overrides
-    the up axis of the run's data (z for a retarget output); the phase-2 options are those of
+    the up axis of the run's data (z for a retarget output, y for a glTF file); the phase-2
+    options are those of
     `nmjax generate` and `nmjax interpolate`.
 
     Raises:
@@ -977,6 +1038,18 @@ def open_view(
     folder = Path(folder)
     kind = folder_kind(folder)
     up_axis = None if up is None else UP_AXES.index(up)
+    if kind == "gltf":
+        from nmjax.export import gltf
+
+        if seq is not None:
+            raise ValueError(f"--seq does not apply to {folder}: a glTF file is one motion")
+        data = gltf.read(folder)
+        server = start_server(host, port)
+        try:  # glTF is +Y up
+            return GltfViewer(server, folder, data, 1 if up_axis is None else up_axis)
+        except BaseException:
+            server.stop()
+            raise
     if kind == "retarget":
         if seq is not None:
             raise ValueError(f"--seq does not apply to {folder}: a retarget output is one motion")

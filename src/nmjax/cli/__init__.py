@@ -49,6 +49,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "bench",
         "steps/s, load vs compute, compile time, memory of the train steps",
     ),
+    "export": (
+        "export",
+        "export",
+        "the rig and its motion as glTF 2.0 (.glb, .gltf) or BVH, for Blender and co.",
+    ),
     "view": ("view", "view", "look at a run in 3D in the browser (viser), frame by frame"),
 }
 

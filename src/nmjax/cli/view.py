@@ -4,11 +4,12 @@
                [--cond 5 --gen 25 --samples 3 --gap 10 --trajectories 16 --seed 0]
                [--record FILE.viser | FILE.html]
 
-RUN is a phase-1 run, a phase-2 run or an `nmjax retarget` output folder. The command prints the
-URL and serves until Ctrl-C; on a remote machine forward the port (`ssh -L 8080:localhost:8080
-HOST`). With --record it writes every frame of the sequence as a viser recording instead and
-exits: FILE.html is a standalone page, FILE.viser plays in viser's static client
-(`index.html?playbackPath=FILE.viser`).
+RUN is a phase-1 run, a phase-2 run, an `nmjax retarget` output folder or a .glb / .gltf file
+of `nmjax export` (its skeleton and skinned mesh, played at the file's frame rate). The command
+prints the URL and serves until Ctrl-C; on a remote machine forward the port (`ssh -L
+8080:localhost:8080 HOST`). With --record it writes every frame of the sequence as a viser
+recording instead and exits: FILE.html is a standalone page, FILE.viser plays in viser's static
+client (`index.html?playbackPath=FILE.viser`).
 """
 
 from __future__ import annotations
@@ -27,9 +28,11 @@ def view(argv: list[str]) -> int:
         "view",
         "Serve a run as a 3D scene in the browser (viser): a phase-1 run's points, keypoints, "
         "skeleton, ground truth and affinity; a phase-2 run's generated and interpolated "
-        "motions; a retarget output's posed mesh.",
+        "motions; a retarget output's posed mesh; an exported glTF file's skinned character.",
     )
-    p.add_argument("--run", required=True, help="phase-1 or phase-2 run, or retarget output")
+    p.add_argument(
+        "--run", required=True, help="phase-1 or phase-2 run, retarget output, or .glb / .gltf file"
+    )
     p.add_argument("--split", default="test", choices=SPLITS, help="whose sequences")
     p.add_argument("--seq", default=None, help="sequence to open (default: the first)")
     p.add_argument("--host", default="127.0.0.1", help="0.0.0.0 serves every interface")

@@ -1,0 +1,295 @@
+"""What `nmjax export` reads: a run folder or a task's output folder, turned into a `Rig` in the
+data's axes (`load`).
+
+- an `nmjax retarget` output: the retargeted joints with the skinned target mesh; rotations
+  from the retargeting (Eqs. 24-25), rest pose the target mesh's;
+- an `nmjax generate` output: one sample (`--sample`) of one input (`--seq`); an `nmjax
+  interpolate` output: one method's motion (`--method`) of one input; a phase-1 run with
+  `--seq`: the detector's keypoints of that sequence. These are positions only: rotations are
+  swing only, from the bones (`rig.swing_rotations`); rest pose frame 0;
+- a phase-2 run with `--seq`: the model's reconstruction of that sequence (best-of-S
+  posterior) with the model's own rotations (Eq. 2); rest pose frame 0.
+
+Only the nodes the run's skeleton keeps (skeleton.json `keep`) become joints, each hanging off
+its nearest kept ancestor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nmjax.export.rig import Rig, kept_tree, swing_rotations
+
+GENERATE_FILE = "generate.npz"
+INTERPOLATE_FILE = "interpolate.npz"
+INTERPOLATE_METHODS = ("Ours", "VRNN", "Lerp", "Slerp", "truth")
+DEFAULT_FRAME_RATE = 30.0  # task outputs written before they stored their run's rate
+DEFAULT_UP_AXIS = 2  # ... and its up axis (z, as `nmjax view` assumes for them)
+RETARGET_RIG_KEYS = ("rotations", "rest_rotations", "rest_joints", "rest_vertices", "faces")
+
+
+@dataclasses.dataclass(frozen=True)
+class Options:
+    """The choices of `nmjax export` that pick a motion (None: not given)."""
+
+    seq: str | None = None
+    sample: int | None = None
+    method: str | None = None
+    split: str = "test"
+    seed: int = 0
+
+
+def kind(folder: Path) -> str:
+    """ "retarget", "generate", "interpolate", "skel" (phase-1 run) or "dyn" (phase-2 run).
+
+    Raises:
+      FileNotFoundError: no such folder, or one that holds none of these.
+    """
+    from nmjax import runs, tasks
+    from nmjax.train import common
+
+    if not folder.is_dir():
+        raise FileNotFoundError(
+            f"--run {folder} does not exist; give a run folder (train-skel, train-dyn) or an "
+            "output folder of `nmjax retarget`, `generate` or `interpolate`"
+        )
+    if (folder / tasks.RETARGET_FILE).is_file():
+        return "retarget"
+    if (folder / GENERATE_FILE).is_file():
+        return "generate"
+    if (folder / INTERPOLATE_FILE).is_file():
+        return "interpolate"
+    if (folder / common.CONFIG_FILE).is_file():
+        return runs.run_kind(folder)
+    raise FileNotFoundError(
+        f"--run {folder} holds no {common.CONFIG_FILE}, {tasks.RETARGET_FILE}, {GENERATE_FILE} "
+        f"or {INTERPOLATE_FILE}; is it an unfinished run or output?"
+    )
+
+
+def _refuse(options: Options, allowed: tuple[str, ...], what: str) -> None:
+    """Refuses every option of `options` that `what` has no use for (one line naming it)."""
+    for name in ("seq", "sample", "method"):
+        if name not in allowed and getattr(options, name) is not None:
+            raise ValueError(f"--{name} does not apply to {what}")
+
+
+def load(folder: str | Path, options: Options) -> tuple[Rig, int]:
+    """(the rig in the data's axes, the data's up axis 0/1/2) of `folder` (module docstring).
+
+    Raises:
+      FileNotFoundError, ValueError: one line naming the bad input and the fix.
+    """
+    folder = Path(folder)
+    found = kind(folder)
+    if found == "retarget":
+        _refuse(options, (), f"{folder} (a retarget output is one motion)")
+        return _retarget(folder)
+    if found in ("generate", "interpolate"):
+        allowed = ("seq", "sample") if found == "generate" else ("seq", "method")
+        _refuse(options, allowed, f"{folder} (an `nmjax {found}` output)")
+        return _task_output(folder, found, options)
+    _refuse(options, ("seq",), f"{folder} (a run folder)")
+    if options.seq is None:
+        names = _sequences(folder, found, options.split)
+        raise ValueError(
+            f"{folder} is a phase-{1 if found == 'skel' else 2} run, which holds many "
+            f"sequences; pick one with --seq NAME ({options.split} sequences: {_listed(names)})"
+        )
+    return _phase1(folder, options) if found == "skel" else _phase2(folder, options)
+
+
+def _listed(names: list[str]) -> str:
+    names = sorted(names)
+    return ", ".join(names[:8]) + (f", ... ({len(names)} in all)" if len(names) > 8 else "")
+
+
+def _sequences(folder: Path, found: str, split: str) -> list[str]:
+    from nmjax import runs
+    from nmjax.config import DynTrainConfig
+    from nmjax.train import common
+
+    skel_run = folder if found == "skel" else common.load_config(folder, DynTrainConfig).skel_run
+    return list(runs.load_trajectories(skel_run, split))
+
+
+def _pick(trajectories: dict[str, np.ndarray], options: Options, where: Path) -> np.ndarray:
+    if options.seq not in trajectories:
+        raise ValueError(
+            f"--seq {options.seq!r} is not a {options.split} sequence of {where}; available: "
+            f"{_listed(list(trajectories))}"
+        )
+    return trajectories[options.seq]
+
+
+def positions_rig(
+    name: str,
+    keypoints: np.ndarray,
+    parents: np.ndarray,
+    keep: np.ndarray,
+    frame_rate: float,
+) -> Rig:
+    """A rig from joint positions only: the kept joints, rest pose = frame 0 with identity
+    rotations, swing-only rotations from the bones (`swing_rotations`).
+
+    Args:
+      name: the motion's name; keypoints: (T, K, >= 3); parents: (K,) the full tree; keep: (K,).
+    """
+    from nmjax.skeleton import skeleton_from_parents
+
+    order = skeleton_from_parents(np.asarray(parents)).order
+    joints, local = kept_tree(parents, np.asarray(order), keep)
+    positions = np.asarray(keypoints, np.float64)[:, joints, :3]
+    rest = positions[0]
+    return Rig(
+        name=name,
+        joints=joints,
+        parents=local,
+        positions=positions,
+        rotations=swing_rotations(positions, rest, local),
+        rest_positions=rest,
+        rest_rotations=np.broadcast_to(np.eye(3), (len(joints), 3, 3)).copy(),
+        frame_rate=frame_rate,
+    )
+
+
+def _stored_format(z: Any, num: int) -> tuple[float, int, np.ndarray]:
+    """(frame rate, up axis, keep) stored in a task's .npz; defaults for older files."""
+    rate = float(z["frame_rate"]) if "frame_rate" in z else DEFAULT_FRAME_RATE
+    up = int(z["up_axis"]) if "up_axis" in z else DEFAULT_UP_AXIS
+    keep = np.asarray(z["keep"], bool) if "keep" in z else np.ones(num, bool)
+    return rate, up, keep
+
+
+def _input_index(names: list[str], seq: str | None, path: Path) -> int:
+    if seq is None:
+        return 0
+    if seq not in names:
+        raise ValueError(f"--seq {seq!r} is not an input of {path}; its inputs: {_listed(names)}")
+    return names.index(seq)
+
+
+def _task_output(folder: Path, found: str, options: Options) -> tuple[Rig, int]:
+    path = folder / (GENERATE_FILE if found == "generate" else INTERPOLATE_FILE)
+    with np.load(path) as z:
+        names = [str(n) for n in z["names"]]
+        i = _input_index(names, options.seq, path)
+        parents = np.asarray(z["parents"])
+        rate, up, keep = _stored_format(z, len(parents))
+        if found == "generate":
+            motions = z["keypoints"]  # (I, S, T, K, 4)
+            sample = 0 if options.sample is None else options.sample
+            count = motions.shape[1]
+            if not 0 <= sample < count:
+                raise ValueError(
+                    f"--sample {sample} is out of range: {path} holds {count} samples per input "
+                    f"(0..{count - 1})"
+                )
+            motion, name = motions[i, sample], f"{names[i]}_sample_{sample}"
+        else:
+            method = "Ours" if options.method is None else options.method
+            present = [m for m in INTERPOLATE_METHODS if m in z]
+            if method not in present:
+                raise ValueError(
+                    f"--method {method!r} is not in {path}; its methods: {', '.join(present)}"
+                )
+            motion, name = z[method][i], f"{names[i]}_{method}"
+    return positions_rig(name, motion, parents, keep, rate), up
+
+
+def _retarget(folder: Path) -> tuple[Rig, int]:
+    from nmjax import tasks
+    from nmjax.skeleton import skeleton_from_parents
+
+    path = folder / tasks.RETARGET_FILE
+    with np.load(path) as z:
+        missing = [k for k in RETARGET_RIG_KEYS if k not in z]
+        if missing:
+            raise ValueError(
+                f"{path} lacks {', '.join(missing)}: it was written before `nmjax export` "
+                "existed; run `nmjax retarget` again to write them"
+            )
+        arrays = {k: np.asarray(z[k]) for k in z.files}
+    parents = arrays["parents"]
+    rate, up, keep = _stored_format(arrays, len(parents))
+    weights = arrays["skin_weights"].astype(np.float64)
+    # Algorithm 2 prunes at its default threshold; a node the skeleton dropped at another
+    # threshold but the weights use is exported too, so the mesh moves as nmjax moved it.
+    keep = keep | (weights.sum(axis=0) > 0)
+    order = np.asarray(skeleton_from_parents(parents).order)
+    joints, local = kept_tree(parents, order, keep)
+    rig = Rig(
+        name=f"{arrays['source']}_retargeted",
+        joints=joints,
+        parents=local,
+        positions=arrays["joints"].astype(np.float64)[:, joints],
+        rotations=arrays["rotations"].astype(np.float64)[:, joints],
+        rest_positions=arrays["rest_joints"].astype(np.float64)[joints],
+        rest_rotations=arrays["rest_rotations"].astype(np.float64)[joints],
+        frame_rate=rate,
+        vertices=arrays["rest_vertices"].astype(np.float64),
+        faces=arrays["faces"].astype(np.int64),
+        weights=weights[:, joints],
+    )
+    return rig, up
+
+
+def _phase1(run: Path, options: Options) -> tuple[Rig, int]:
+    from nmjax import runs
+
+    skeleton = runs.read_skeleton(run)
+    kept = runs.pruned_skeleton(run)
+    keep = np.ones(skeleton.num_keypoints, bool) if kept is None else kept[1]
+    keypoints = _pick(runs.load_trajectories(run, options.split), options, run)
+    rate, up = runs.motion_format(run)
+    rig = positions_rig(options.seq, keypoints, np.asarray(skeleton.parents), keep, rate)
+    return rig, up
+
+
+def _phase2(run: Path, options: Options) -> tuple[Rig, int]:
+    """The model's best-of-S posterior reconstruction of one whole sequence (its exported
+    keypoints), placed by forward kinematics with the model's own rotations."""
+    import jax
+    import jax.numpy as jnp
+    from flax import nnx
+
+    from nmjax import geometry, runs, tasks
+    from nmjax.models.dynamics import bone_lengths
+
+    model, _, skel_run = runs.load_phase2(run)
+    x = _pick(runs.load_trajectories(skel_run, options.split), options, skel_run)[None]
+    local, recon = tasks.infer_rotations_jit(
+        *nnx.split(model), jnp.asarray(x), jax.random.key(options.seed)
+    )
+    kept = runs.pruned_skeleton(skel_run)
+    keep = np.ones(model.num_keypoints, bool) if kept is None else kept[1]
+    rate, up = runs.motion_format(skel_run)
+    parents = np.asarray(model.parents)
+    if model.kind != "nm":  # the positional baseline outputs keypoints, no rotations
+        return positions_rig(options.seq, np.asarray(recon[0]), parents, keep, rate), up
+    root = model.order[0]
+    positions, rotations = geometry.forward_kinematics_with_rotations(
+        recon[0, :, root, :3],
+        local[0],
+        model.offsets(bone_lengths(jnp.asarray(x), model.parents))[0],
+        model.parents,
+        model.order,
+    )
+    joints, local_parents = kept_tree(parents, np.asarray(model.order), keep)
+    positions = np.asarray(positions, np.float64)[:, joints]
+    rotations = np.asarray(rotations, np.float64)[:, joints]
+    rig = Rig(
+        name=options.seq,
+        joints=joints,
+        parents=local_parents,
+        positions=positions,
+        rotations=rotations,
+        rest_positions=positions[0],
+        rest_rotations=rotations[0],
+        frame_rate=rate,
+    )
+    return rig, up

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from browser import Chromium, find_browser
+from browser import Chromium, require_browser
 from tiny_runs import PARENTS, make_runs
 
 from nmjax import atomic, runs, tasks, view
@@ -361,8 +361,7 @@ def scene_spread(image: np.ndarray) -> float:
 
 
 def test_a_browser_connects_and_draws_the_scene(tiny, tmp_path):
-    executable = find_browser()
-    assert executable, "the browser test needs Chromium: apt-get install chromium"
+    executable = require_browser()  # skips without Chromium, except under CI=true
     with opened(tiny["skel"]) as viewer:
         connected = threading.Event()
         viewer.server.on_client_connect(lambda _: connected.set())

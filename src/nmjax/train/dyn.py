@@ -225,6 +225,32 @@ def build(
     return common.init_state(model, StepSettings.of(cfg).optimizer)
 
 
+# The fields the model's weights' shapes follow, besides the number of keypoints K: a run that
+# starts from another run's weights (`init_from`) must have the same.
+INIT_FIELDS = ("model.model", "model.latent", "model.hidden", "model.mlp")
+
+
+def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
+    """The weights a fine-tuning run of `cfg` on a skeleton of `num_keypoints` keypoints starts
+    from: the trained model of the phase-2 run `cfg.init_from` (`nmjax.runs.restore_dynamics`).
+
+    Raises:
+      FileNotFoundError, ValueError: one line; the source is no phase-2 run with a checkpoint,
+        its network differs from `cfg`'s (`common.init_source_config`), or it models another K.
+    """
+    from nmjax import runs  # runs builds on this module
+
+    source = common.init_source_config(cfg, INIT_FIELDS, "phase-2")
+    model = runs.restore_dynamics(cfg.init_from)
+    if len(model.parents) != num_keypoints:
+        raise ValueError(
+            f"--init-from {cfg.init_from}: its model moves K={len(model.parents)} keypoints (the "
+            f"skeleton of {source.skel_run}), the phase-1 run {cfg.skel_run} has K="
+            f"{num_keypoints}; train on a phase-1 run of K={len(model.parents)} (--skel-run)"
+        )
+    return nnx.state(model)
+
+
 # --- validation -------------------------------------------------------------------------------
 
 
@@ -325,7 +351,8 @@ def train(
       inputs: makes the `Phase2Inputs` (`sequence_inputs`, or `nmjax.runs.crop_inputs` with its
         detector passes); called once the run folder is accepted, so a refused run costs nothing.
       resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
-        `cfg` only in `common.RESUMABLE_FIELDS`.
+        `cfg` only in `common.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from` starts
+        from that run's weights (`initial_weights`) and a fresh optimizer.
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step.
 
@@ -342,6 +369,10 @@ def train(
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
+    graphdef, state = build(cfg, parents, order)
+    if cfg.init_from and not resume:  # checked before the run folder is made
+        initial = initial_weights(cfg, len(parents))
+        state["model"] = common.checked_weights(initial, state["model"], cfg.init_from)
     run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
     data = inputs()
     check_inputs(data, len(parents))
@@ -350,7 +381,6 @@ def train(
     poses, starts, val_x, val_cond, base_key, val_key = parallel.replicate(
         (*data, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
     )
-    graphdef, state = build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
     history: list[dict[str, float]] = []

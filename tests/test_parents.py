@@ -1,4 +1,4 @@
-"""Parent arrays from outside the library (nmjax.skeleton.parents_from_external): a root given as
+"""Parent arrays from outside the library (nmjax.parents.parents_from_external): a root given as
 -1 (any negative), as 2**32 - 1 or as its own index is accepted by every reader of a tree from a
 file, and comes out as its own parent; a cycle, two roots or an index past the end are refused in
 one line naming the file and the entry."""
@@ -16,6 +16,7 @@ from body_model_files import chain_model, write_npz
 
 from nmjax import evaluate, skeleton
 from nmjax.data import body_models, layout, prepare
+from nmjax.parents import parents_from_external
 
 TREE = [0, 0, 1, 1]  # nmjax's convention: the root is its own parent
 ROOTS = {"minus one": -1, "any negative": -7, "uint32 minus one": 2**32 - 1, "own index": 0}
@@ -29,14 +30,14 @@ def with_root(root: int) -> list[int]:
 
 def test_every_root_convention_becomes_the_roots_own_index():
     for root in ROOTS.values():
-        got = skeleton.parents_from_external(with_root(root), "test")
+        got = parents_from_external(with_root(root), "test")
         assert got.dtype == np.int64 and got.tolist() == TREE
     for dtype in (np.uint32, np.int32, np.uint64, np.int64):  # as arrays of any integer type
         values = np.array(with_root(-1)).astype(dtype)
-        assert skeleton.parents_from_external(values, "test").tolist() == TREE
+        assert parents_from_external(values, "test").tolist() == TREE
     # A root that is not joint 0, marked each way.
     for root in (-1, 2**32 - 1, 2):
-        assert skeleton.parents_from_external([2, 0, root], "x").tolist() == [2, 0, 2]
+        assert parents_from_external([2, 0, root], "x").tolist() == [2, 0, 2]
 
 
 @pytest.mark.parametrize(
@@ -53,7 +54,7 @@ def test_every_root_convention_becomes_the_roots_own_index():
 )
 def test_what_is_not_a_tree_is_one_line_naming_the_source_and_entry(values, match):
     with pytest.raises(ValueError, match=match) as refused:
-        skeleton.parents_from_external(values, "x.json `parents`")
+        parents_from_external(values, "x.json `parents`")
     assert "\n" not in str(refused.value)
 
 

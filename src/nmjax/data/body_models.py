@@ -32,6 +32,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from nmjax.parents import parents_from_external
+
 # Joint counts of the two models; a file with another count is neither.
 SMPL_JOINTS = 24
 MANO_JOINTS = 16
@@ -302,7 +304,7 @@ def parents_from_kintree(kintree_table: np.ndarray, source: str = "kintree_table
 
     Row 1 holds the joint ids (a permutation of 0..K-1, the index used by `weights`, `J_regressor`
     and the pose vector), row 0 each one's parent id; the root's parent is -1, which the official
-    files store as 2**32 - 1, or the root's own id (`nmjax.skeleton.parents_from_external`).
+    files store as 2**32 - 1, or the root's own id (`nmjax.parents.parents_from_external`).
 
     Args:
       source: where the table comes from, named in errors (e.g. "MANO_RIGHT.pkl `kintree_table`").
@@ -310,8 +312,6 @@ def parents_from_kintree(kintree_table: np.ndarray, source: str = "kintree_table
     Raises:
       ValueError: ids that are not 0..K-1, an id past the end, not exactly one root, or a cycle.
     """
-    from nmjax.skeleton import parents_from_external
-
     table = np.asarray(kintree_table).astype(np.int64)
     if table.ndim != 2 or table.shape[0] != 2 or table.shape[1] < 1:
         raise ValueError(f"{source} must have shape (2, K), got {table.shape}")

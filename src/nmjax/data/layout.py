@@ -32,6 +32,7 @@ import numpy as np
 
 from nmjax import atomic
 from nmjax.config import DATASETS, dataset_spec
+from nmjax.parents import parents_from_external
 
 SPLITS = ("train", "test")
 TEST_FRACTION = 0.1  # the 9:1 split
@@ -156,13 +157,11 @@ def read_meta(name: str, root: str | os.PathLike | None = None) -> dict:
 def read_meta_file(path: str | os.PathLike) -> dict:
     """A meta.json (a dataset's, or the one a raw source brings) as a dict, its `parents`, when it
     has them, a tree with the root its own parent whatever convention the file used
-    (`nmjax.skeleton.parents_from_external`).
+    (`nmjax.parents.parents_from_external`).
 
     Raises:
       ValueError: invalid JSON, or `parents` that are not a tree (naming the file and the entry).
     """
-    from nmjax.skeleton import parents_from_external
-
     path = Path(path)
     try:
         meta = json.loads(path.read_text())

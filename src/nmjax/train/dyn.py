@@ -42,6 +42,7 @@ from flax import nnx
 from nmjax import losses
 from nmjax.config import DYN_INPUTS, DynTrainConfig
 from nmjax.models.dynamics import Dynamics
+from nmjax.skeleton import load_skeleton
 from nmjax.train import common, parallel
 
 RUNS_ROOT = Path("runs")
@@ -232,23 +233,39 @@ INIT_FIELDS = ("model.model", "model.latent", "model.hidden", "model.mlp")
 
 def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
     """The weights a fine-tuning run of `cfg` on a skeleton of `num_keypoints` keypoints starts
-    from: the trained model of the phase-2 run `cfg.init_from` (`nmjax.runs.restore_dynamics`).
+    from: the trained model of the phase-2 run `cfg.init_from` (`restore_model`).
 
     Raises:
       FileNotFoundError, ValueError: one line; the source is no phase-2 run with a checkpoint,
         its network differs from `cfg`'s (`common.init_source_config`), or it models another K.
     """
-    from nmjax import runs  # runs builds on this module
-
     source = common.init_source_config(cfg, INIT_FIELDS, "phase-2")
-    model = runs.restore_dynamics(cfg.init_from)
-    if len(model.parents) != num_keypoints:
+    if not source.skel_run:
+        raise ValueError(f"--init-from {cfg.init_from}: its config.json names no skel_run")
+    tree = load_skeleton(Path(source.skel_run) / common.SKELETON_FILE)
+    if tree.num_keypoints != num_keypoints:
         raise ValueError(
-            f"--init-from {cfg.init_from}: its model moves K={len(model.parents)} keypoints (the "
+            f"--init-from {cfg.init_from}: its model moves K={tree.num_keypoints} keypoints (the "
             f"skeleton of {source.skel_run}), the phase-1 run {cfg.skel_run} has K="
-            f"{num_keypoints}; train on a phase-1 run of K={len(model.parents)} (--skel-run)"
+            f"{num_keypoints}; train on a phase-1 run of K={tree.num_keypoints} (--skel-run)"
         )
-    return nnx.state(model)
+    return nnx.state(restore_model(cfg.init_from, source, tree.parents, tree.order))
+
+
+def restore_model(
+    run: str | Path,
+    cfg: DynTrainConfig,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+    step: int | None = None,
+) -> Dynamics:
+    """The model of checkpoint `step` (default: the latest) of the phase-2 run `run`, whose
+    configuration is `cfg` and whose skeleton is (`parents`, `order`). `nmjax.runs.
+    restore_dynamics` is the run-folder API over it (it reads both from the folder)."""
+    graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
+    with common.Checkpointer(Path(run) / common.CHECKPOINTS, keep=cfg.keep_checkpoints) as ckpt:
+        _, state = ckpt.restore(abstract, step=step)
+    return nnx.merge(graphdef, state["model"])
 
 
 # --- validation -------------------------------------------------------------------------------

@@ -101,18 +101,37 @@ INIT_FIELDS = (
 
 def initial_weights(cfg: SkelTrainConfig) -> nnx.State:
     """The weights a fine-tuning run of `cfg` starts from: the trained detector of the run
-    `cfg.init_from` (restored as the later stages restore it, `nmjax.runs.load_detector`: the
-    best checkpoint, the weight average when the run keeps one).
+    `cfg.init_from` (restored as the later stages restore it: the
+    best checkpoint, the weight average when the run keeps one; `restore_detector`).
 
     Raises:
       FileNotFoundError, ValueError: one line; the source is no phase-1 run with a checkpoint,
         or its network differs from `cfg`'s (`common.init_source_config`).
     """
-    from nmjax import runs  # runs builds on this module
-
     common.init_source_config(cfg, INIT_FIELDS, "phase-1")
-    model, _ = runs.load_detector(cfg.init_from)
+    model, _ = restore_detector(cfg.init_from)
     return nnx.state(model)
+
+
+def restore_detector(
+    run: str | Path, step: int | None = None
+) -> tuple[KeypointDetector, SkelTrainConfig]:
+    """The trained detector of a phase-1 run and its configuration: checkpoint `step`, else the
+    best by validation loss, else the latest (`model_of`: the weight average when the run keeps
+    one). `nmjax.runs.load_detector` is the run-folder API over it."""
+    run = Path(run)
+    cfg = common.load_config(run, SkelTrainConfig)
+    # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
+    graphdef, state = build(cfg)
+    abstract = common.abstract_state(state)
+    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, BEST_METRIC)
+    try:
+        if step is None:
+            step = ckpt.best_step() or ckpt.latest_step()
+        _, state = ckpt.restore(abstract, step=step)
+    finally:
+        ckpt.close()
+    return model_of(graphdef, state, cfg), cfg
 
 
 def loss_fn(

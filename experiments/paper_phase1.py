@@ -129,7 +129,16 @@ def run_folder(key: RowKey) -> Path:
 
 def comparable(config: dict[str, Any]) -> dict[str, Any]:
     """A config.json without what does not change the computation (the run folder's path) or
-    is filled in from the data when training starts (steps_per_epoch), as JSON reads it back."""
+    is filled in from the data when training starts (steps_per_epoch), as JSON reads it back.
+
+    Read through the configuration's dataclass first: a field added since the row was stored
+    reads as its default (what the row's code computed), as `nmjax.train.common.load_config`
+    reads an older run's config.json.
+    """
+    try:
+        config = common.config_to_dict(common.config_from_dict(SkelTrainConfig, config))
+    except (ValueError, TypeError):  # a field since removed: compared as stored, so unequal
+        pass
     derived = ("run", "steps_per_epoch")
     return json.loads(json.dumps({k: v for k, v in config.items() if k not in derived}))
 

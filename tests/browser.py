@@ -18,13 +18,16 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from programs import require_program
 
 BROWSERS = ("chromium", "chromium-browser", "google-chrome")
+INSTALL = "apt-get install chromium (Debian, Ubuntu), or any Chromium or Chrome on PATH"
 
 
-def find_browser() -> str | None:
-    """The first Chromium-family executable on PATH, or None."""
-    return next((path for name in BROWSERS if (path := shutil.which(name))), None)
+def require_browser() -> str:
+    """The first Chromium-family executable on PATH; without one the calling test skips (fails
+    under CI=true), naming the install command (`programs.require_program`)."""
+    return require_program(BROWSERS, "this test drives a headless Chromium", INSTALL)
 
 
 class Chromium:

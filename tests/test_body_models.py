@@ -45,7 +45,7 @@ def test_pkl_and_npz_read_as_the_same_model(tmp_path, protocol):
         np.testing.assert_array_equal(model.j_regressor, arrays["J_regressor"])
         np.testing.assert_array_equal(model.weights, arrays["weights"])
         np.testing.assert_array_equal(model.faces, arrays["f"])
-        np.testing.assert_array_equal(model.parents, [-1, 0, 1])
+        np.testing.assert_array_equal(model.parents, [0, 0, 1])  # the root its own parent
         assert model.hands_mean is None and model.kind == "a 3-joint model"
 
 
@@ -120,7 +120,7 @@ def test_regressed_joints_of_a_posed_smpl_tree_are_its_chain_joints(tmp_path):
     rest = tree_joints(SMPL_PARENTS, bone=0.2)
     path = write_official_pkl(tmp_path / "smpl.pkl", box_model(SMPL_PARENTS, rest, half=0.02))
     model = body_models.load_model(path)
-    assert model.kind == "SMPL" and model.parents.tolist() == SMPL_PARENTS
+    assert model.kind == "SMPL" and model.parents.tolist() == [0, *SMPL_PARENTS[1:]]
     pose = np.random.default_rng(1).normal(scale=0.5, size=(4, 72))
     vertices, joints = body_models.pose_model(model, pose, betas=np.ones(3), trans=np.ones(3))
     regressed = body_models.regress_joints(model.j_regressor, vertices)
@@ -149,10 +149,13 @@ def test_mano_pose_adds_the_mean_hand(tmp_path):
 
 def test_kintree_table_order_and_errors():
     table = kintree([-1, 0, 1, 1])[:, [2, 0, 3, 1]]  # columns in any order
-    np.testing.assert_array_equal(body_models.parents_from_kintree(table), [-1, 0, 1, 1])
-    with pytest.raises(ValueError, match="exactly one root"):
+    np.testing.assert_array_equal(body_models.parents_from_kintree(table), [0, 0, 1, 1])
+    for root in (-1, 0, 2**32 - 1):  # signed, own id, unsigned 32-bit
+        table = np.array([[root, 0, 1], [0, 1, 2]], dtype=np.int64)
+        np.testing.assert_array_equal(body_models.parents_from_kintree(table), [0, 0, 1])
+    with pytest.raises(ValueError, match=r"2 roots \(entries \[0, 1\]\)"):
         body_models.parents_from_kintree(kintree([-1, -1, 0]))
-    with pytest.raises(ValueError, match="cycle"):
+    with pytest.raises(ValueError, match=r"entries \[1, 2\] never reach the root"):
         body_models.parents_from_kintree(np.array([[2**32 - 1, 2, 1], [0, 1, 2]]))
     with pytest.raises(ValueError, match="ids 0..K-1"):
         body_models.parents_from_kintree(np.array([[2**32 - 1, 0], [0, 5]]))

@@ -104,5 +104,11 @@ def test_datasets_prepare_and_synthetic_depend_on_layout_not_on_each_other():
         )
         assert "nmjax.data.layout" in imports | through, name
     assert "nmjax.data.streaming" in imported_modules("nmjax.data.prepare")
-    assert imported_modules("nmjax.data.layout") <= {"nmjax.atomic", "nmjax.config"}
+    # nmjax.parents (NumPy only, importing no nmjax module) reads a tree's file conventions.
+    assert imported_modules("nmjax.data.layout") <= {
+        "nmjax.atomic",
+        "nmjax.config",
+        "nmjax.parents",
+    }
+    assert imported_modules("nmjax.parents") == set()
     assert imported_modules("nmjax.data.bodies") == set()

@@ -43,6 +43,11 @@ def test_a_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(drive
     assert driver.same_computation(row, cfg)
     moved = {**row, "config": {**row["config"], "run": "elsewhere"}}  # the folder is no change
     assert driver.same_computation(moved, cfg)
+    # A row stored before a field existed reads it at its default: `init_from` came later.
+    older = {k: v for k, v in row["config"].items() if k != "init_from"}
+    assert driver.same_computation({**row, "config": older}, cfg)
+    tuned = {**row["config"], "init_from": "runs/other"}
+    assert not driver.same_computation({**row, "config": tuned}, cfg)
     assert not driver.same_computation(
         row, driver.row_config(driver.RowKey("synth-arm", 0, "preset"))
     )

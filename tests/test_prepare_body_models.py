@@ -102,7 +102,8 @@ def test_aist_download(tmp_path, models, capsys):
     assert json.loads((root / "split.json").read_text()) == {"train": [TRAIN], "test": [TEST]}
     meta = json.loads((root / "meta.json").read_text())
     assert meta["frames"] == AIST_FRAMES and meta["ignored"] == [IGNORED]
-    assert meta["parents"] == SMPL_PARENTS and len(meta["joint_names"]) == 24
+    # The prepared tree in nmjax's convention: the root (-1 in SMPL's table) its own parent.
+    assert meta["parents"] == [0, *SMPL_PARENTS[1:]] and len(meta["joint_names"]) == 24
     model = body_models.load_model(models["smpl"])
     for split, name in (("train", TRAIN), ("test", TEST)):
         (seq,) = load_sequences("aist", split, root)
@@ -189,7 +190,7 @@ def test_hanco_download(tmp_path, models, capsys):
     assert json.loads((root / "split.json").read_text()) == split
     meta = json.loads((root / "meta.json").read_text())
     assert meta["frames"] == frames and meta["fewer_than_two_fits"] == ["0002"]
-    assert meta["parents"][:5] == [-1, 0, 1, 2, 3] and len(meta["joint_names"]) == 21
+    assert meta["parents"][:5] == [0, 0, 1, 2, 3] and len(meta["joint_names"]) == 21
     loaded = {s.name: s for part in ("train", "test") for s in load_sequences("hanco", part, root)}
     assert set(loaded) == set(frames)
     assert all(p.name.endswith("_joints.npy") for p in root.glob("*/joints/*.npy"))

@@ -592,3 +592,17 @@ def test_import_refuses_an_existing_folder_and_writes_nothing_on_failure(
     release.import_release(pth, opt, "new", overwrite=True, example=example, progress=False)
     assert not (skel_run / "mark").exists() and (skel_run / "skeleton.json").is_file()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["new", "taken"]
+
+
+def test_resuming_an_imported_run_points_to_init_from(imported, monkeypatch, capsys):
+    """The imported folders hold weights and an untouched optimizer (checkpoint 0): --resume is
+    refused in one line, before any data is read, naming --init-from."""
+    from nmjax import cli
+
+    root, _, _, _ = imported
+    monkeypatch.chdir(root)
+    for command, run in (("train-skel", "imported/skel"), ("train-dyn", "imported/dyn")):
+        assert cli.main([command, "--run", run, "--resume", "--no-progress"]) == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1, lines
+        assert "no optimizer state" in lines[0] and f"--init-from {run}" in lines[0], lines

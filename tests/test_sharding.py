@@ -196,6 +196,41 @@ def _script_dyn(workdir: Path) -> dict:
     }
 
 
+def _script_host(workdir: Path) -> dict:
+    """One of two processes joined on localhost by the JAX_* environment variables, doing what a
+    trainer does with the hosts (without its compiled step): the mesh over both, the run folder
+    made by process 0, each host's slice of the seeded crop stream placed into the global batch,
+    and a jitted reduction over that batch whose replicated result every host reads."""
+    from nmjax.train import parallel
+
+    assert parallel.initialize_distributed()  # from the environment, as under a scheduler
+    import jax
+    import jax.numpy as jnp
+
+    from nmjax.data import pipeline
+
+    cfg = small_skel_config(workdir / "data", batch_size=2)
+    mesh = parallel.data_mesh()
+    parallel.check_batch_size(cfg.data.batch_size, "data.batch_size", mesh)
+    run = parallel.prepare_run_dir(workdir / "run", resume=False, config=cfg)
+    data = dataclasses.replace(cfg.data, prefetch=0)
+    local = next(pipeline.skel_iterator(data, seed=cfg.seed))["voxels"]  # this host's crops
+    voxels = parallel.host_batch_to_global({"voxels": local}, mesh)["voxels"]
+    sums = jax.jit(
+        lambda v: jnp.sum(v, axis=(1, 2, 3, 4)), out_shardings=parallel.replicated(mesh)
+    )(voxels)
+    return {
+        "process": jax.process_index(),
+        "processes": jax.process_count(),
+        "devices": len(jax.devices()),
+        "primary": parallel.is_primary(),
+        "local_crops": int(local.shape[0]),
+        "global_shape": list(voxels.shape),
+        "crop_sums": np.asarray(parallel.to_local(sums)).tolist(),
+        "run_written": (run / "config.json").is_file(),
+    }
+
+
 def _xla_flags(devices: int) -> str:
     """The session's XLA flags (tests/conftest.py) with `devices` forced CPU devices."""
     return f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}"
@@ -336,6 +371,43 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
+def test_two_processes_join_and_feed_one_global_batch(tmp_path):
+    """Two processes joined with jax.distributed on localhost (one CPU device each, set by the
+    environment variables): each feeds its half of every global batch, and the batch they make
+    together is the single host's (the fast half of the slow two-host training test below)."""
+    from nmjax.data import pipeline, synthetic
+
+    synthetic.generate(
+        "synth-arm", tmp_path / "data", num_sequences=3, frames=8, points=500, progress=False
+    )
+    env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": _xla_flags(devices=1)}
+    env |= {"JAX_COORDINATOR_ADDRESS": f"localhost:{_free_port()}", "JAX_NUM_PROCESSES": "2"}
+    procs = [
+        subprocess.Popen(
+            [sys.executable, __file__, "host", str(tmp_path)],
+            env={**env, "JAX_PROCESS_ID": str(i)},
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in (0, 1)
+    ]
+    outputs = [proc.communicate(timeout=600) for proc in procs]
+    for proc, (_, err) in zip(procs, outputs, strict=True):
+        assert proc.returncode == 0, err[-3000:]
+    hosts = [json.loads(out.strip().splitlines()[-1]) for out, _ in outputs]
+    assert [(h["process"], h["processes"], h["devices"]) for h in hosts] == [(0, 2, 2), (1, 2, 2)]
+    assert [h["primary"] for h in hosts] == [True, False]
+    assert [h["local_crops"] for h in hosts] == [1, 1]
+    assert all(h["global_shape"][0] == 2 and h["run_written"] for h in hosts)
+    cfg = small_skel_config(tmp_path / "data", batch_size=2)
+    data = dataclasses.replace(cfg.data, prefetch=0)
+    whole = next(pipeline.skel_iterator(data, seed=cfg.seed, process_index=0, process_count=1))
+    expected = whole["voxels"].sum(axis=(1, 2, 3, 4))
+    for host in hosts:  # every host reads the whole batch's result: crop 0 from host 0, 1 from 1
+        np.testing.assert_allclose(host["crop_sums"], expected, rtol=1e-6)
+
+
 @pytest.mark.slow
 def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
     """Two processes with one CPU device each (jax.distributed on localhost, each feeding its
@@ -388,5 +460,5 @@ def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
 
 if __name__ == "__main__":
     phase, workdir = sys.argv[1], Path(sys.argv[2])
-    result = {"skel": _script_skel, "dyn": _script_dyn}[phase](workdir)
+    result = {"skel": _script_skel, "dyn": _script_dyn, "host": _script_host}[phase](workdir)
     print(json.dumps(result))

@@ -518,6 +518,30 @@ def test_interpolate_command(runs, tmp_path):
             np.testing.assert_array_equal(z[method][:, -1], z["truth"][:, -1])
 
 
+def test_interpolate_command_takes_a_point_sequence_file(runs, tmp_path):
+    """`interpolate --source-file`: the keyframes and truth are the file's first gap + 1 frames
+    (every --source-rate-th) detected as one crop, the output named after the file."""
+    from nmjax import cli
+    from nmjax.data.datasets import load_sequences
+
+    (seq,) = load_sequences("synth-arm", "test", runs["data"])[:1]
+    motion = tmp_path / "motion.npy"
+    np.save(motion, np.asarray(seq.vertices, np.float32))
+    out = tmp_path / "interp"
+    argv = ["interpolate", "--run", str(runs["nm"]), "--gap", "3", "--trajectories", "2"]
+    argv += ["--source-file", str(motion), "--source-rate", "2", "--out", str(out)]
+    assert cli.main([*argv, "--vrnn-run", str(runs["vrnn"])]) == 0
+    _, truth, _ = tasks.source_file_clip(runs["skel"], motion, 4, 2)
+    with np.load(out / "interpolate.npz") as z:
+        assert list(z["names"]) == ["motion"]
+        np.testing.assert_allclose(z["truth"], truth, atol=1e-6)
+        for method in ("Ours", "VRNN", "Lerp", "Slerp"):
+            assert z[method].shape == (1, 4, K, 4) and np.all(np.isfinite(z[method]))
+            np.testing.assert_array_equal(z[method][:, 0], z["truth"][:, 0])
+            np.testing.assert_array_equal(z[method][:, -1], z["truth"][:, -1])
+    assert (out / "motion.gif").stat().st_size > 0
+
+
 def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     import trimesh
 

@@ -354,3 +354,45 @@ def test_validation_generates_from_the_given_conditioning_keypoints(fake_run):
     np.testing.assert_allclose(generated, expected, atol=1e-6)
     hold = np.mean(np.sum((np.asarray(x[:, 1:]) - np.asarray(other)) ** 2, axis=(-2, -1)))
     np.testing.assert_allclose(float(metrics["gen_hold"]), hold, rtol=1e-5)
+
+
+def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run, tmp_path, capsys):
+    """`init_from`: the new run's first step sees the source run's trained weights and a fresh
+    optimizer, config.json names the source; another network width is refused in one line, as
+    is resuming a folder of imported weights (checkpoint 0 only)."""
+    cadence = dict(steps=2, ckpt_every=2, val_every=2, log_every=1)
+    source_cfg = tiny_cfg(fake_run, tmp_path / "source", **cadence)
+    runs.train_dynamics(source_cfg, progress=False)
+    source = jax.tree.leaves(nnx.state(runs.restore_dynamics(tmp_path / "source")))
+    seen = {}
+
+    def hook(step, state):
+        seen.setdefault(step, jax.device_get(state))
+        return state
+
+    tuned = dataclasses.replace(
+        source_cfg, run=str(tmp_path / "tuned"), init_from=str(tmp_path / "source")
+    )
+    runs.train_dynamics(tuned, progress=False, step_hook=hook)
+    for a, b in zip(jax.tree.leaves(seen[0]["model"]), source, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert not any(np.any(x) for x in jax.tree.leaves(seen[0]["opt"]))  # Adam's zero state
+    saved = json.loads((tmp_path / "tuned" / "config.json").read_text())
+    assert saved["init_from"] == str(tmp_path / "source")
+
+    argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
+    argv += ["--set", "inputs=sequence", "--run", str(tmp_path / "w")]
+    wider = ["--set", "model.hidden=32", "--init-from", str(tmp_path / "source")]
+    assert nmjax_main([*argv, *wider]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "model.hidden (run: 16, asked: 32)" in lines[0], lines
+    assert nmjax_main([*argv, "--init-from", str(fake_run)]) == 2  # a phase-1 folder
+    assert "no config.json" in capsys.readouterr().err
+    assert not (tmp_path / "w").exists()
+
+    imported = common.prepare_run_dir(tmp_path / "imported", resume=False, config=tuned)
+    with common.Checkpointer(imported / "checkpoints", 1) as ckpt:
+        ckpt.save(0, seen[0])  # what `nmjax import-release` writes: weights, untouched Adam
+    assert nmjax_main(["train-dyn", "--run", str(imported), "--resume"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and f"--init-from {imported}" in lines[0], lines

@@ -377,3 +377,59 @@ def test_fit_minutes_times_the_step_and_trains_the_fitted_schedule(
     for extra in (["--steps", "5"], ["--resume"]):
         assert nmjax_main([*argv, "--fit-minutes", "22", *extra]) == 2
         assert "--fit-minutes" in capsys.readouterr().err
+
+
+def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp_path, capsys):
+    """A run fine-tuned from another (`init_from`): its first step's loss is the source
+    detector's loss on that batch, its optimizer is fresh, its config.json names the source; a
+    network of another K is refused in one line before anything is written."""
+    from nmjax.data import pipeline
+
+    cfg = _cfg(three_sequences, steps=2)
+    source = tmp_path / "source"
+    skel.train(cfg, source, progress=False, finalize=False)
+    tuned = dataclasses.replace(cfg, steps=1, init_from=str(source))
+    skel.train(tuned, tmp_path / "tuned", progress=False, finalize=False)
+
+    def first_loss(run):
+        return next(r["train/loss"] for r in common.read_metrics(run) if "train/loss" in r)
+
+    # The source detector's loss (Eq. 23, by the trainer's own compiled validation step) on the
+    # batch of the first step: the same data and seed give the same first crop.
+    resolved = config.resolve_epochs(tuned, 2, 1)  # as the trainer resolves it
+    graphdef, state = skel.build(resolved)
+    mesh = parallel.data_mesh()
+    weights = {**state, "model": nnx.state(runs.load_detector(source)[0])}
+    batch = next(pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed))
+    _, eval_fn = skel.make_steps(graphdef, resolved, mesh)
+    terms, _ = eval_fn(
+        parallel.replicate(weights, mesh), skel.device_batch(batch, cfg, mesh, host_slice=False)
+    )
+    expected = float(terms["loss"])
+    assert first_loss(tmp_path / "tuned") == pytest.approx(expected, rel=1e-5)
+    # The source's own first step, from the seed's initialisation, saw another loss.
+    assert first_loss(source) != pytest.approx(expected, rel=1e-5)
+    with common.Checkpointer(tmp_path / "tuned" / "checkpoints", keep=3) as ckpt:
+        _, restored = ckpt.restore(skel.abstract_state(state), step=1)
+    counts = [
+        int(x)
+        for path, x in jax.tree_util.tree_leaves_with_path(restored["opt"])
+        if "count" in jax.tree_util.keystr(path)
+    ]
+    assert counts and set(counts) == {1}  # one update since the optimizer was made
+    saved = json.loads((tmp_path / "tuned" / "config.json").read_text())
+    assert saved["init_from"] == str(source)
+
+    argv = ["train-skel", "--data", "synth-arm", "--root", str(three_sequences), "--preset"]
+    argv += ["tiny", "--run", str(tmp_path / "k5"), "--init-from", str(source), "--no-progress"]
+    for change in ("data.grid=8", "model.grid=8", "model.channels=4", "model.num_keypoints=5"):
+        argv += ["--set", change]
+    assert nmjax_main([*argv, "--set", "model.hourglass_channels=4,4,4"]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert "model.num_keypoints (run: 4, asked: 5)" in lines[0]
+    assert "--set model.num_keypoints=4" in lines[0] and "model.channels" not in lines[0]
+    assert not (tmp_path / "k5").exists()
+    resume = ["train-skel", "--run", str(source), "--resume", "--init-from", str(source)]
+    assert nmjax_main(resume) == 2
+    assert "give one of them" in capsys.readouterr().err

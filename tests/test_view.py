@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import pytest
-from browser import Chromium, find_browser
+from browser import Chromium, require_browser
 from tiny_runs import PARENTS, make_runs
 
 from nmjax import atomic, runs, tasks, view
@@ -256,6 +256,54 @@ def test_phase2_scene_shows_generation_and_interpolation(tiny):
         assert not viewer.nodes["/interpolate/Slerp"].visible
 
 
+def test_phase2_scene_draws_every_panel_from_the_task_outputs(tiny, monkeypatch):
+    """The phase-2 scene of the test above without compiling the tasks: generation and
+    interpolation give known motions (each panel its own offset of the sequence), and every
+    panel draws its motion frame by frame, for the sequence the dropdown picks."""
+    cond, gen, gap = 2, 3, 3
+    trajectories = runs.load_trajectories(tiny["skel"], "test")
+    asked = []
+
+    def generate(self, name, cond, gen, samples, seed):
+        asked.append(name)
+        observed = trajectories[name][: cond + gen]
+        return observed, np.stack([observed + 0.01 * (s + 1) for s in range(samples)])
+
+    def interpolate(self, name, gap, trajectories_, seed):
+        truth = trajectories[name][: gap + 1]
+        return truth, {m: truth + 0.1 * (i + 1) for i, m in enumerate(self.methods)}
+
+    monkeypatch.setattr(view.Phase2Data, "generate", generate)
+    monkeypatch.setattr(view.Phase2Data, "interpolate", interpolate)
+    options = dict(cond=cond, gen=gen, samples=2, gap=gap, trajectories=2)
+    with opened(tiny["nm"], **options) as viewer:
+        methods = ["Ours", "VRNN", "Lerp", "Slerp"]  # VRNN: the run found beside
+        panels = {"/generate/observed": 0.0, "/generate/sample_1": 0.01}
+        panels |= {"/generate/sample_2": 0.02, "/interpolate/truth": 0.0}
+        panels |= {f"/interpolate/{m}": 0.1 * (i + 1) for i, m in enumerate(methods)}
+        for prefix in panels:
+            for node in ("", "/keypoints", "/skeleton/bones", "/label"):
+                assert prefix + node in viewer.nodes
+        assert viewer.num_frames == cond + gen
+        for name in sorted(trajectories)[::-1]:  # the first shown, then the other picked
+            viewer.sequence.value = name
+            assert asked[-1] == name
+            truth = trajectories[name][:, :, :3]
+            for t in range(cond + gen):
+                viewer.frame.value = t
+                for prefix, offset in panels.items():
+                    i = t if prefix.startswith("/generate") else min(t, gap)  # held at the end
+                    drawn = viewer.panels[prefix].keypoints.batched_positions
+                    np.testing.assert_allclose(drawn, truth[i] + offset, atol=1e-6, err_msg=prefix)
+                sample = tuple(viewer.panels["/generate/sample_1"].bones.colors[0, 0])
+                assert sample == (view.GENERATED_BONE_COLOR if t >= cond else view.BONE_COLOR)
+                ours = tuple(viewer.panels["/interpolate/Ours"].bones.colors[0, 0])
+                inside = 0 < t < gap
+                assert ours == (view.GENERATED_BONE_COLOR if inside else view.BONE_COLOR)
+        viewer.toggles["interpolate: Slerp"].value = False
+        assert not viewer.nodes["/interpolate/Slerp"].visible
+
+
 def test_retarget_scene_poses_the_mesh_per_frame(tmp_path):
     frames, parents = 3, np.array([0, 0, 1])
     base = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64)
@@ -361,8 +409,7 @@ def scene_spread(image: np.ndarray) -> float:
 
 
 def test_a_browser_connects_and_draws_the_scene(tiny, tmp_path):
-    executable = find_browser()
-    assert executable, "the browser test needs Chromium: apt-get install chromium"
+    executable = require_browser()  # skips without Chromium, except under CI=true
     with opened(tiny["skel"]) as viewer:
         connected = threading.Event()
         viewer.server.on_client_connect(lambda _: connected.set())

@@ -233,6 +233,9 @@ class SkelTrainConfig:
     # artefacts); fixed-budget comparisons (experiments/phase1_study.py) use it.
     time_limit_minutes: float = 0.0
     run: str | None = None  # default: runs/skel-<data>-<timestamp>
+    # A run whose trained detector this one starts from (fine-tuning, `--init-from`), with a
+    # fresh optimizer; "": the initialisation of `model.init` at `seed`.
+    init_from: str = ""
 
 
 @dataclass(frozen=True)
@@ -281,6 +284,9 @@ class DynTrainConfig:
     ckpt_every: int = 500
     keep_checkpoints: int = 3
     run: str | None = None
+    # A phase-2 run whose trained model this one starts from (fine-tuning, `--init-from`), with
+    # a fresh optimizer; "": the initialisation at `seed`.
+    init_from: str = ""
 
 
 DYN_INPUTS = ("crop", "sequence")

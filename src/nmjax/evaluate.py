@@ -158,29 +158,24 @@ def phase1_outputs(detector: Detector, max_crops: int = 8, split: str = "test"):
 
 def true_tree(detector: Detector, num_joints: int) -> np.ndarray | None:
     """The ground-truth kinematic tree of the detector's dataset: the `parents` of its meta.json
-    (the root its own parent), or None when the dataset does not record them.
+    (read by `layout.read_meta`, which takes the root in any convention and returns it as its own
+    parent), or None when the dataset does not record them.
 
     Raises:
       ValueError: the recorded parents are not a tree over the `num_joints` joints.
     """
     from nmjax.data.layout import dataset_root, read_meta
-    from nmjax.skeleton import skeleton_from_parents
 
     data = detector.cfg.data
     parents = read_meta(data.name, data.root).get("parents")
     if parents is None:
         return None
-    path = dataset_root(data.name, data.root) / "meta.json"
-    try:
-        tree = skeleton_from_parents(np.asarray(parents))
-    except ValueError as err:
-        raise ValueError(f"{path}: `parents` is not a tree ({err}); fix the file") from err
-    if tree.num_keypoints != num_joints:
+    if len(parents) != num_joints:
         raise ValueError(
-            f"{path}: `parents` names {tree.num_keypoints} joints but the joint files hold "
-            f"{num_joints}; regenerate or re-prepare the dataset"
+            f"{dataset_root(data.name, data.root) / 'meta.json'}: `parents` names {len(parents)} "
+            f"joints but the joint files hold {num_joints}; regenerate or re-prepare the dataset"
         )
-    return np.asarray(tree.parents)
+    return np.asarray(parents)
 
 
 def skeleton_against_truth(

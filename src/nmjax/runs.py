@@ -83,19 +83,7 @@ def load_detector(run: str | Path, step: int | None = None) -> tuple[KeypointDet
 
     Restores `step`, else the best checkpoint by validation loss, else the latest.
     """
-    run = Path(run)
-    cfg = common.load_config(run, SkelTrainConfig)
-    # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
-    graphdef, state = skel.build(cfg)
-    abstract = common.abstract_state(state)
-    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, skel.BEST_METRIC)
-    try:
-        if step is None:
-            step = ckpt.best_step() or ckpt.latest_step()
-        _, state = ckpt.restore(abstract, step=step)
-    finally:
-        ckpt.close()
-    return skel.model_of(graphdef, state, cfg), cfg
+    return skel.restore_detector(run, step)
 
 
 @dataclasses.dataclass
@@ -756,10 +744,7 @@ def restore_dynamics(run: str | Path, step: int | None = None) -> Dynamics:
     if not cfg.skel_run:
         raise ValueError(f"{run}/config.json names no skel_run; is {run} a `train-dyn` run?")
     skeleton = read_skeleton(cfg.skel_run)
-    graphdef, abstract = nnx.eval_shape(lambda: dyn.build(cfg, skeleton.parents, skeleton.order))
-    with common.Checkpointer(run / common.CHECKPOINTS, keep=cfg.keep_checkpoints) as ckpt:
-        _, state = ckpt.restore(abstract, step=step)
-    return nnx.merge(graphdef, state["model"])
+    return dyn.restore_model(run, cfg, skeleton.parents, skeleton.order, step)
 
 
 def load_phase2(run: str | Path) -> tuple[Dynamics, DynTrainConfig, Path]:

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.sparse import csgraph
 
 from nmjax import atomic, keypoints
+from nmjax.parents import parents_from_external
 
 NO_PATH = 1e4  # Algorithm 1: hop distance written for "no path" between two keypoints
 PRUNE_THRESHOLD = 0.2  # keypoints with mean intensity alpha below this are pruned (paper figures)
@@ -129,7 +130,8 @@ def skeleton_from_parents(parents: Any, order: Any = None) -> Skeleton:
 
 
 def load_skeleton(path: str | os.PathLike) -> Skeleton:
-    """Reads a `skeleton.json` written by `Skeleton.save` and validates it.
+    """Reads a `skeleton.json` written by `Skeleton.save` (or by hand, its root in any of the
+    conventions of `nmjax.parents.parents_from_external`) and validates it.
 
     Raises:
       FileNotFoundError: no such file (extract it with `nmjax extract-skeleton --run RUN`).
@@ -143,10 +145,9 @@ def load_skeleton(path: str | os.PathLike) -> Skeleton:
     data = json.loads(path.read_text())
     if "parents" not in data:
         raise ValueError(f"{path} has no 'parents' field; re-run `nmjax extract-skeleton`")
+    parents = parents_from_external(data["parents"], f"{path} `parents`")
     try:
-        skeleton = skeleton_from_parents(
-            np.asarray(data["parents"], dtype=np.int64), data.get("order")
-        )
+        skeleton = skeleton_from_parents(parents, data.get("order"))
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from e
     if "root" in data and int(data["root"]) != skeleton.root:

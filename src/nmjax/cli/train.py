@@ -9,6 +9,10 @@ A new run starts from the preset plus the options. `--resume` continues `--run` 
 config.json: `--steps` (and the log / validation / checkpoint cadence via --set) may change;
 any other option that changes the saved configuration (`--set model...`, `--seed`,
 `--batch-size`, another --data) is refused before anything in the folder is written.
+`--init-from RUN` starts a new run (its own folder, a fresh optimizer) from the trained weights of
+RUN, a run of the same phase (e.g. the authors' model, `nmjax import-release`): the network of
+the preset and options must be RUN's (grid, K, channels, ...; a difference is refused, named),
+and config.json records RUN as `init_from`.
 """
 
 from __future__ import annotations
@@ -47,6 +51,9 @@ SKEL_PRESETS_HELP = (
 )
 
 
+PHASES = {"skel": "phase-1", "dyn": "phase-2"}
+
+
 def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume") -> None:
     from nmjax.config import PRESETS, add_override_argument
 
@@ -60,6 +67,13 @@ def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume
     )
     p.add_argument("--run", default=None, help=f"run folder (default runs/{what}-DATA-STAMP)")
     p.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
+    p.add_argument(
+        "--init-from",
+        default=None,
+        metavar="RUN",
+        help=f"start a new run from the trained weights of RUN (a {PHASES[what]} run, e.g. one "
+        "`nmjax import-release` wrote) with a fresh optimizer; its network must be RUN's",
+    )
     add_override_argument(p, "override a config field, e.g. --set model.channels=16")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     _distributed_args(p)
@@ -71,7 +85,24 @@ def _saved_config(args: argparse.Namespace, cls: type):
 
     if args.run is None:
         raise ValueError("--resume needs --run DIR (the run folder to continue)")
-    return common.load_config(args.run, cls)
+    if args.init_from is not None:
+        raise ValueError(
+            "--init-from starts a new run from another run's weights and --resume continues "
+            "--run itself; give one of them"
+        )
+    cfg = common.load_config(args.run, cls)
+    # A folder with nothing to resume (no checkpoint, or only imported weights) is refused here,
+    # before any data is read or any detector run.
+    common.check_run_dir(args.run, resume=True, config=cfg)
+    return cfg
+
+
+def _init_from(cfg, args: argparse.Namespace):
+    """`cfg` recording --init-from (as an absolute path: config.json names the source wherever
+    the run is read from later)."""
+    if args.init_from is None:
+        return cfg
+    return dataclasses.replace(cfg, init_from=str(Path(args.init_from).absolute()))
 
 
 def _initialize(args: argparse.Namespace) -> None:
@@ -107,6 +138,7 @@ def skel_config(args: argparse.Namespace):
         cfg = resized if args.resume else with_steps(cfg, args.steps)
     if args.run is not None:
         cfg = dataclasses.replace(cfg, run=str(args.run))
+    cfg = _init_from(cfg, args)
     skel.check_config(cfg)
     return cfg
 
@@ -211,7 +243,7 @@ def dyn_config(args: argparse.Namespace):
     if args.steps is not None:  # a new run counts in steps instead of epochs
         resized = dataclasses.replace(cfg, steps=args.steps)
         cfg = resized if args.resume else dataclasses.replace(resized, epochs=0)
-    return apply_overrides(cfg, args.overrides)
+    return _init_from(apply_overrides(cfg, args.overrides), args)
 
 
 def dyn_parser() -> Parser:

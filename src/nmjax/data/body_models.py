@@ -32,6 +32,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from nmjax.parents import parents_from_external
+
 # Joint counts of the two models; a file with another count is neither.
 SMPL_JOINTS = 24
 MANO_JOINTS = 16
@@ -270,7 +272,7 @@ class BodyModel:
       shapedirs: (V, 3, B) shape blend shapes.
       posedirs: (V, 3, 9 (K - 1)) pose blend shapes.
       j_regressor: (K, V) joints from vertices.
-      parents: (K,) int parent of each joint, -1 at the root (from `kintree_table`).
+      parents: (K,) int parent of each joint, the root its own parent (from `kintree_table`).
       weights: (V, K) skinning weights.
       faces: (F, 3) int triangles.
       hands_mean: (45,) MANO's mean finger pose, or None (SMPL).
@@ -297,53 +299,41 @@ class BodyModel:
         return MODEL_KINDS.get(self.num_joints, f"a {self.num_joints}-joint model")
 
 
-def parents_from_kintree(kintree_table: np.ndarray) -> np.ndarray:
-    """(K,) parent index of each joint from SMPL's (2, K) `kintree_table`, -1 at the root.
+def parents_from_kintree(kintree_table: np.ndarray, source: str = "kintree_table") -> np.ndarray:
+    """(K,) parent index of each joint from SMPL's (2, K) `kintree_table`, the root its own parent.
 
     Row 1 holds the joint ids (a permutation of 0..K-1, the index used by `weights`, `J_regressor`
-    and the pose vector), row 0 each one's parent id; the root's parent is an id outside the table
-    (SMPL stores 2**32 - 1).
+    and the pose vector), row 0 each one's parent id; the root's parent is -1, which the official
+    files store as 2**32 - 1, or the root's own id (`nmjax.parents.parents_from_external`).
+
+    Args:
+      source: where the table comes from, named in errors (e.g. "MANO_RIGHT.pkl `kintree_table`").
 
     Raises:
-      ValueError: ids that are not 0..K-1, not exactly one root, or a cycle.
+      ValueError: ids that are not 0..K-1, an id past the end, not exactly one root, or a cycle.
     """
     table = np.asarray(kintree_table).astype(np.int64)
     if table.ndim != 2 or table.shape[0] != 2 or table.shape[1] < 1:
-        raise ValueError(f"kintree_table must have shape (2, K), got {table.shape}")
+        raise ValueError(f"{source} must have shape (2, K), got {table.shape}")
     ids, parent_ids = table[1], table[0]
     num = ids.shape[0]
     if sorted(ids.tolist()) != list(range(num)):
-        raise ValueError("kintree_table row 1 must list the joint ids 0..K-1")
-    parents = np.full(num, -1, dtype=np.int64)
-    inside = (parent_ids >= 0) & (parent_ids < num)
-    parents[ids[inside]] = parent_ids[inside]
-    roots = int((parents < 0).sum())
-    if roots != 1:
-        raise ValueError(f"kintree_table must have exactly one root, got {roots}")
-    chain_order(parents)  # raises on a cycle
-    return parents
+        raise ValueError(f"{source} row 1 must list the joint ids 0..K-1")
+    by_id = np.empty(num, dtype=np.int64)
+    by_id[ids] = parent_ids
+    return parents_from_external(by_id, source)
 
 
 def chain_order(parents: np.ndarray) -> list[int]:
-    """Joint indices ordered so that every parent comes before its children.
+    """Joint indices ordered so that every parent comes before its children (the root, its own
+    parent, first).
 
     Raises:
       ValueError: the parents do not form a tree (a cycle, or a parent out of range).
     """
-    parents = np.asarray(parents)
-    children: dict[int, list[int]] = {}
-    for joint, parent in enumerate(parents.tolist()):
-        if not -1 <= parent < len(parents) or parent == joint:
-            raise ValueError(f"joint {joint} has the invalid parent {parent}")
-        children.setdefault(parent, []).append(joint)
-    order, queue = [], list(children.get(-1, []))
-    while queue:
-        joint = queue.pop(0)
-        order.append(joint)
-        queue.extend(children.get(joint, []))
-    if len(order) != len(parents):
-        raise ValueError("the kinematic tree has a cycle: not every joint reaches the root")
-    return order
+    from nmjax.skeleton import skeleton_from_parents
+
+    return list(skeleton_from_parents(np.asarray(parents)).order)
 
 
 def _read_arrays(path: Path) -> dict[str, Any]:
@@ -395,10 +385,8 @@ def load_model(path: str | os.PathLike) -> BodyModel:
     content = _read_arrays(path)
     v_template = _array(content, "v_template", path, 2, np.float64)
     num_vertices = v_template.shape[0]
-    try:
-        parents = parents_from_kintree(_array(content, "kintree_table", path, 2, np.int64))
-    except ValueError as err:
-        raise ValueError(f"{path}: {err}") from err
+    table = _array(content, "kintree_table", path, 2, np.int64)
+    parents = parents_from_kintree(table, f"{path} `kintree_table`")
     num_joints = parents.shape[0]
     shapedirs = _array(content, "shapedirs", path, 3, np.float64)
     posedirs = _array(content, "posedirs", path, 3, np.float64)
@@ -524,7 +512,7 @@ def chain_transforms(rotations: np.ndarray, joints: np.ndarray, parents: np.ndar
     Args:
       rotations: (..., K, 3, 3) local rotations.
       joints: (..., K, 3) rest-pose joint positions.
-      parents: (K,) parent indices, -1 at the root.
+      parents: (K,) parent indices, the root its own parent.
 
     Returns:
       (..., K, 4, 4).
@@ -534,7 +522,7 @@ def chain_transforms(rotations: np.ndarray, joints: np.ndarray, parents: np.ndar
     local = np.zeros((*batch, num, 4, 4))
     local[..., :3, :3] = rotations
     offsets = joints.copy()
-    has_parent = parents >= 0
+    has_parent = parents != np.arange(num)
     offsets[..., has_parent, :] -= joints[..., parents[has_parent], :]
     local[..., :3, 3] = offsets
     local[..., 3, 3] = 1.0
@@ -542,7 +530,7 @@ def chain_transforms(rotations: np.ndarray, joints: np.ndarray, parents: np.ndar
     for joint in chain_order(parents):
         parent = parents[joint]
         own = local[..., joint, :, :]
-        world[..., joint, :, :] = own if parent < 0 else world[..., parent, :, :] @ own
+        world[..., joint, :, :] = own if parent == joint else world[..., parent, :, :] @ own
     return world
 
 

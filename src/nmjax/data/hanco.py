@@ -48,7 +48,8 @@ NUM_KEYPOINTS = 21
 KEYPOINT_NAMES = ("wrist",) + tuple(
     f"{finger}_{k}" for finger in ("thumb", "index", "middle", "ring", "pinky") for k in range(1, 5)
 )
-KEYPOINT_PARENTS = (-1,) + tuple(0 if k == 0 else 4 * f + k for f in range(5) for k in range(4))
+# Their tree, the wrist (the root) its own parent.
+KEYPOINT_PARENTS = (0,) + tuple(0 if k == 0 else 4 * f + k for f in range(5) for k in range(4))
 # The keypoints lie on or inside the hand: each within this fraction of the hand's size (its
 # bounding-box diagonal) of a mesh vertex, and spread over 0.5 to 2 times that size. A millimetre
 # / metre mix-up or another coordinate frame misses both by far.

@@ -5,7 +5,8 @@
                                         <seq>_joints.npy, see `JOINT_FILE_PATTERNS`)
     <root>/<split>/<kind>/<seq>.npy     further per-frame arrays (the synthetic sets: angles)
     <root>/split.json                   optional: {"train": [seq, ...], "test": [seq, ...]}
-    <root>/meta.json                    optional: joint_names, parents, sample_rate, ...;
+    <root>/meta.json                    optional: joint_names, parents (the true tree; its
+                                        root -1, 2**32 - 1 or its own index), sample_rate, ...;
                                         written last, so that it marks a finished set
     <root>/preparing.json               only while `nmjax prepare-data` has not finished: the
                                         settings a rerun must repeat to continue
@@ -31,6 +32,7 @@ import numpy as np
 
 from nmjax import atomic
 from nmjax.config import DATASETS, dataset_spec
+from nmjax.parents import parents_from_external
 
 SPLITS = ("train", "test")
 TEST_FRACTION = 0.1  # the 9:1 split
@@ -147,14 +149,27 @@ def joints_file(name: str, joints_folder: Path, seq: str) -> Path | None:
 
 
 def read_meta(name: str, root: str | os.PathLike | None = None) -> dict:
-    """`<root>/meta.json` of a dataset as a dict ({} when the dataset has none)."""
+    """`<root>/meta.json` of a dataset as a dict (`read_meta_file`), {} when it has none."""
     path = dataset_root(name, root) / "meta.json"
-    if not path.is_file():
-        return {}
+    return read_meta_file(path) if path.is_file() else {}
+
+
+def read_meta_file(path: str | os.PathLike) -> dict:
+    """A meta.json (a dataset's, or the one a raw source brings) as a dict, its `parents`, when it
+    has them, a tree with the root its own parent whatever convention the file used
+    (`nmjax.parents.parents_from_external`).
+
+    Raises:
+      ValueError: invalid JSON, or `parents` that are not a tree (naming the file and the entry).
+    """
+    path = Path(path)
     try:
-        return json.loads(path.read_text())
+        meta = json.loads(path.read_text())
     except json.JSONDecodeError as err:
         raise ValueError(f"{path}: invalid JSON ({err})") from err
+    if isinstance(meta, dict) and meta.get("parents") is not None:
+        meta["parents"] = parents_from_external(meta["parents"], f"{path} `parents`").tolist()
+    return meta
 
 
 def is_complete(root: str | os.PathLike) -> bool:

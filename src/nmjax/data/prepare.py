@@ -27,7 +27,6 @@ rerun continues it.
 from __future__ import annotations
 
 import dataclasses
-import json
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,6 +35,7 @@ from typing import NamedTuple
 import numpy as np
 
 from nmjax.data import aist, body_models, dfaust, dt4d, hanco
+from nmjax.data.layout import read_meta_file
 from nmjax.data.streaming import (
     SourceSequence,
     Summary,
@@ -273,7 +273,8 @@ def prepare_real(
         meta, note = {}, None
     chosen = select_sequences(listed, sequences, source)
     if form == "mesh-folders" and (source / "meta.json").is_file():
-        meta = json.loads((source / "meta.json").read_text())
+        # The prepared set's meta.json takes the source's, its tree in nmjax's convention.
+        meta = read_meta_file(source / "meta.json")
     meta["format"] = form
     summary = write_sequences(
         name,

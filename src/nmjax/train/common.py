@@ -320,7 +320,8 @@ def check_run_dir(path: str | Path, *, resume: bool, config: Any, overwrite: boo
     Raises:
       FileNotFoundError: `resume` and the folder, its config.json or its checkpoints are missing.
       ValueError: the folder exists and holds files, and neither `resume` nor `overwrite` is set;
-        or `resume` with a configuration that changes what the run computes.
+        or `resume` with a configuration that changes what the run computes, or of a folder
+        whose only checkpoint is an import's step 0 (pointing to --init-from).
     """
     path = Path(path)
     if not resume:
@@ -335,11 +336,72 @@ def check_run_dir(path: str | Path, *, resume: bool, config: Any, overwrite: boo
             f"cannot resume: run folder {path} does not exist; drop --resume to start a new run"
         )
     check_resume_config(load_config(path, type(config)), config, path)
-    if not checkpoint_steps(path / CHECKPOINTS):
+    steps = checkpoint_steps(path / CHECKPOINTS)
+    if not steps:
         raise FileNotFoundError(
             f"cannot resume {path}: it has no complete checkpoint; start it again with "
             "--overwrite (or drop --resume with a new --run)"
         )
+    if steps == [0]:
+        # Only `nmjax import-release` writes a step 0: weights with an optimizer state that no
+        # step has touched. Resuming would train the imported folder itself, in place.
+        raise ValueError(
+            f"cannot resume {path}: it holds imported weights (checkpoint 0) and no optimizer "
+            f"state of a training run; fine-tune them in a new run with --init-from {path}"
+        )
+
+
+def init_source_config(config: Any, fields: tuple[str, ...], phase: str) -> Any:
+    """The configuration of the run `config.init_from` that a new run starts from (fine-tuning),
+    after refusing, in one line, a source that a run of `config` cannot take its weights from.
+
+    Args:
+      config: the new run's configuration (a `SkelTrainConfig` or `DynTrainConfig`).
+      fields: dotted config fields that shape the network's weights: they must be equal.
+      phase: "phase-1" or "phase-2", for the messages.
+
+    Raises:
+      FileNotFoundError: no run folder or no checkpoint there.
+      ValueError: a run of the other phase, or a network that differs in `fields` (each named
+        with both values and the `--set` that matches the source).
+    """
+    source = Path(config.init_from)
+    if not (source / CONFIG_FILE).is_file():
+        raise FileNotFoundError(
+            f"--init-from {source}: no {CONFIG_FILE} there; give a {phase} run folder (one that "
+            "`nmjax train-...` or `nmjax import-release` wrote)"
+        )
+    try:
+        saved = load_config(source, type(config))
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"--init-from {source} is not a {phase} run ({err})") from err
+    if not checkpoint_steps(source / CHECKPOINTS):
+        raise FileNotFoundError(f"--init-from {source}: the run has no complete checkpoint")
+    old, new = _flatten(config_to_dict(saved)), _flatten(config_to_dict(config))
+    differ = [name for name in fields if old.get(name) != new.get(name)]
+    if differ:
+
+        def option(value: Any) -> str:
+            return ",".join(map(str, value)) if isinstance(value, list) else str(value)
+
+        diffs = ", ".join(f"{k} (run: {old.get(k)!r}, asked: {new.get(k)!r})" for k in differ)
+        sets = " ".join(f"--set {k}={option(old.get(k))}" for k in differ)
+        raise ValueError(
+            f"--init-from {source}: its network differs from this run's in {diffs}; start from "
+            f"a run of the same network, or give this one its network: {sets}"
+        )
+    return saved
+
+
+def checked_weights(weights: Any, expected: Any, source: str) -> Any:
+    """`weights` (a model state restored from the run `source`) to start a new model whose own
+    state is `expected`, after checking that every leaf has the expected shape and dtype.
+
+    Raises:
+      ValueError: a leaf missing, extra or of another shape (`_check_compatible`).
+    """
+    _check_compatible(expected, weights, f"--init-from {source}")
+    return weights
 
 
 def check_resume_config(saved: Any, config: Any, path: str | Path) -> None:

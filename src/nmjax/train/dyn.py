@@ -43,6 +43,7 @@ from flax import nnx
 from nmjax import losses
 from nmjax.config import DYN_INPUTS, DynTrainConfig
 from nmjax.models.dynamics import Dynamics
+from nmjax.skeleton import load_skeleton
 from nmjax.train import common, parallel
 
 RUNS_ROOT = Path("runs")
@@ -297,6 +298,48 @@ def build(
     return common.init_state(model, StepSettings.of(cfg).optimizer)
 
 
+# The fields the model's weights' shapes follow, besides the number of keypoints K: a run that
+# starts from another run's weights (`init_from`) must have the same.
+INIT_FIELDS = ("model.model", "model.latent", "model.hidden", "model.mlp")
+
+
+def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
+    """The weights a fine-tuning run of `cfg` on a skeleton of `num_keypoints` keypoints starts
+    from: the trained model of the phase-2 run `cfg.init_from` (`restore_model`).
+
+    Raises:
+      FileNotFoundError, ValueError: one line; the source is no phase-2 run with a checkpoint,
+        its network differs from `cfg`'s (`common.init_source_config`), or it models another K.
+    """
+    source = common.init_source_config(cfg, INIT_FIELDS, "phase-2")
+    if not source.skel_run:
+        raise ValueError(f"--init-from {cfg.init_from}: its config.json names no skel_run")
+    tree = load_skeleton(Path(source.skel_run) / common.SKELETON_FILE)
+    if tree.num_keypoints != num_keypoints:
+        raise ValueError(
+            f"--init-from {cfg.init_from}: its model moves K={tree.num_keypoints} keypoints (the "
+            f"skeleton of {source.skel_run}), the phase-1 run {cfg.skel_run} has K="
+            f"{num_keypoints}; train on a phase-1 run of K={tree.num_keypoints} (--skel-run)"
+        )
+    return nnx.state(restore_model(cfg.init_from, source, tree.parents, tree.order))
+
+
+def restore_model(
+    run: str | Path,
+    cfg: DynTrainConfig,
+    parents: tuple[int, ...],
+    order: tuple[int, ...],
+    step: int | None = None,
+) -> Dynamics:
+    """The model of checkpoint `step` (default: the latest) of the phase-2 run `run`, whose
+    configuration is `cfg` and whose skeleton is (`parents`, `order`). `nmjax.runs.
+    restore_dynamics` is the run-folder API over it (it reads both from the folder)."""
+    graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
+    with common.Checkpointer(Path(run) / common.CHECKPOINTS, keep=cfg.keep_checkpoints) as ckpt:
+        _, state = ckpt.restore(abstract, step=step)
+    return nnx.merge(graphdef, state["model"])
+
+
 # --- validation -------------------------------------------------------------------------------
 
 
@@ -398,7 +441,8 @@ def train(
         crops are detected as batches draw them); called once the run folder is accepted, so a
         refused run costs nothing.
       resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
-        `cfg` only in `common.RESUMABLE_FIELDS`.
+        `cfg` only in `common.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from` starts
+        from that run's weights (`initial_weights`) and a fresh optimizer.
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step.
 
@@ -415,6 +459,10 @@ def train(
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
     run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
+    graphdef, state = build(cfg, parents, order)
+    if cfg.init_from and not resume:  # checked before the run folder is made
+        initial = initial_weights(cfg, len(parents))
+        state["model"] = common.checked_weights(initial, state["model"], cfg.init_from)
     run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
     data = inputs()
     check_inputs(data, len(parents))
@@ -424,7 +472,6 @@ def train(
         (data.val, data.val_cond, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
     )
     draws = CropDraws(jax.random.key(cfg.seed), data.crops.num_starts, cfg.batch_size)
-    graphdef, state = build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
     history: list[dict[str, float]] = []

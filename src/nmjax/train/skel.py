@@ -87,6 +87,53 @@ def build(cfg: SkelTrainConfig, seed: int | None = None) -> tuple[nnx.GraphDef, 
     return common.init_state(model, StepSettings.of(cfg).optimizer)
 
 
+# The fields the detector's weights' shapes follow: a run that starts from another run's weights
+# (`init_from`) must have the same.
+INIT_FIELDS = (
+    "model.grid",
+    "model.heatmap_stride",
+    "model.num_keypoints",
+    "model.channels",
+    "model.hourglass_channels",
+    "model.num_affinity",
+)
+
+
+def initial_weights(cfg: SkelTrainConfig) -> nnx.State:
+    """The weights a fine-tuning run of `cfg` starts from: the trained detector of the run
+    `cfg.init_from` (restored as the later stages restore it: the
+    best checkpoint, the weight average when the run keeps one; `restore_detector`).
+
+    Raises:
+      FileNotFoundError, ValueError: one line; the source is no phase-1 run with a checkpoint,
+        or its network differs from `cfg`'s (`common.init_source_config`).
+    """
+    common.init_source_config(cfg, INIT_FIELDS, "phase-1")
+    model, _ = restore_detector(cfg.init_from)
+    return nnx.state(model)
+
+
+def restore_detector(
+    run: str | Path, step: int | None = None
+) -> tuple[KeypointDetector, SkelTrainConfig]:
+    """The trained detector of a phase-1 run and its configuration: checkpoint `step`, else the
+    best by validation loss, else the latest (`model_of`: the weight average when the run keeps
+    one). `nmjax.runs.load_detector` is the run-folder API over it."""
+    run = Path(run)
+    cfg = common.load_config(run, SkelTrainConfig)
+    # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
+    graphdef, state = build(cfg)
+    abstract = common.abstract_state(state)
+    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, BEST_METRIC)
+    try:
+        if step is None:
+            step = ckpt.best_step() or ckpt.latest_step()
+        _, state = ckpt.restore(abstract, step=step)
+    finally:
+        ckpt.close()
+    return model_of(graphdef, state, cfg), cfg
+
+
 def loss_fn(
     model: KeypointDetector, batch: dict[str, jax.Array], weights: LossWeights
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -242,7 +289,9 @@ def train(
       cfg: the full configuration (checked before anything is compiled or written).
       run_dir: the run folder (contract C10).
       resume: continue from the latest checkpoint of `run_dir` (state, step, data position); the
-        run's config.json may differ from `cfg` only in `common.RESUMABLE_FIELDS`.
+        run's config.json may differ from `cfg` only in `common.RESUMABLE_FIELDS`. Without it a
+        run with `cfg.init_from` starts from that run's weights (`initial_weights`) and a fresh
+        optimizer.
       overwrite: replace an existing `run_dir`.
       finalize: write affinity.npy and keypoint_stats.npz at the end (`write_artifacts`).
       progress: show a tqdm bar.
@@ -271,8 +320,10 @@ def train(
     cfg = resolve_epochs(cfg, train_sequences, cfg.data.batch_size)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
-    run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     graphdef, state = build(cfg)
+    if cfg.init_from and not resume:  # checked before the run folder is made
+        state["model"] = common.checked_weights(initial_weights(cfg), state["model"], cfg.init_from)
+    run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     state = parallel.replicate(state, mesh)
     step_fn, eval_fn = make_steps(graphdef, cfg, mesh)
 

@@ -20,7 +20,7 @@ install:
 	$(VENV)/bin/pip install -e '.[dev]'
 
 test:
-	$(VENV)/bin/pytest -q -n 2 --dist loadscope
+	$(VENV)/bin/pytest -q -n auto --dist loadscope
 
 test-slow:
 	$(VENV)/bin/pytest -q -m slow

@@ -50,14 +50,19 @@ import phase1_tables
 from nmjax import provenance, runs
 from nmjax.config import SkelTrainConfig, skel_preset, with_steps
 from nmjax.data.voxelize import voxel_points
-from nmjax.evaluate import PHASE1_METRICS, evaluate_phase1, phase1_outputs, skeleton_against_truth
+from nmjax.evaluate import (
+    PHASE1_METRICS,
+    evaluate_phase1,
+    phase1_outputs,
+    phase1_scores,
+    skeleton_against_truth,
+    true_tree,
+)
 from nmjax.runs import Detector
 from nmjax.skeleton import extract_skeleton, prune
 from nmjax.train import common, skel
 
-BODIES = ("synth-arm", "synth-hand", "synth-human", "synth-quadruped")
-# The bodies standing for the paper's ablation datasets (AIST++, HanCo).
-COMPARISON_BODIES = ("synth-human", "synth-hand")
+BODIES, COMPARISON_BODIES = phase1_tables.BODIES, phase1_tables.COMPARISON_BODIES
 VARIANTS = {
     "preset": "the cpu preset",
     "gt": "L_vol replaced by the MSE to the ground-truth joints, K = J (Table 2's GT)",
@@ -273,8 +278,6 @@ def alg1_vs_filtered(detector: Detector, max_crops: int) -> dict[str, dict[str, 
         names.append(name)
         keypoints.append(kp)
         joints.append(gt)
-    from nmjax.evaluate import true_tree
-
     truth = true_tree(detector, joints[0].shape[-2])
     if truth is None:
         return None
@@ -298,30 +301,7 @@ def score(key: RowKey, run: Path, cfg: SkelTrainConfig, minutes, stamp) -> dict[
     """The row of a finished run (see the module docstring)."""
     detector = Detector.load(run)
     results = evaluate_phase1(detector, MAX_CROPS)
-    scores = {
-        "tracking_cd": results["tracking"]["mean"],
-        "tracking_cd_ci95": results["tracking"]["ci95"],
-    }
-    for name in ("sc", "sc_fixed_nodes"):
-        if name in results:
-            scores[name] = results[name]["score"]
-            scores[f"{name}_std_over_joints"] = results[name]["std_over_joints"]
-    if "bone_length_variation" in results:
-        scores["bone_length_variation"] = results["bone_length_variation"]["mean"]
-    if "joint_distance" in results:
-        scores["joint_distance"] = results["joint_distance"]["mean"]
-        scores["joint_distance_ci95"] = results["joint_distance"]["ci95"]
-    for name in (
-        "joint_coverage_0.05",
-        "joint_coverage_0.10",
-        "edge_precision",
-        "edge_precision_within_2_hops",
-        "bone_recall",
-        "distinct_nodes",
-        "skeleton_kept_nodes",
-    ):
-        if name in results:
-            scores[name] = results[name]
+    scores = phase1_scores(results)
     parents, keep = runs.pruned_skeleton(run)
     return {
         "body": key.body,

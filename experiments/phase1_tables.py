@@ -40,6 +40,7 @@ COUNTERPART = {
     "synth-human": "AIST++",
     "synth-quadruped": "Animals",
 }
+# The bodies standing for the paper's ablation datasets (AIST++, HanCo).
 COMPARISON_BODIES = ("synth-human", "synth-hand")
 LABEL = {
     "preset": "Ours (cpu preset)",

@@ -419,11 +419,15 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
     assert summary["test"] == pytest.approx(
         {
             "sc": expected["sc"]["score"],
+            "sc_std_over_joints": expected["sc"]["std_over_joints"],
             "sc_fixed_nodes": expected["sc_fixed_nodes"]["score"],
+            "sc_fixed_nodes_std_over_joints": expected["sc_fixed_nodes"]["std_over_joints"],
             "tracking_cd": expected["tracking"]["mean"],
+            "tracking_cd_ci95": expected["tracking"]["ci95"],
             "bone_length_variation": expected["bone_length_variation"]["mean"],
             "joint_distance": expected["joint_distance"]["mean"],
             "joint_distance_ci95": expected["joint_distance"]["ci95"],
+            "skeleton_kept_nodes": expected["skeleton_kept_nodes"],
             **{key: expected[key] for key in SKELETON_KEYS[1:]},
         },
         nan_ok=True,  # one test sequence: no CI

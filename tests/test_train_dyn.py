@@ -396,3 +396,17 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     assert nmjax_main(["train-dyn", "--run", str(imported), "--resume"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()
     assert len(lines) == 1 and f"--init-from {imported}" in lines[0], lines
+
+
+def test_an_aist_sized_crop_run_detects_fewer_crops_than_the_release():
+    """experiments/phase2_inputs_cost.py's count: at the default preset phase 2 on AIST++ draws
+    150 epochs x ceil(1,227 / 16) x 16 crops; the distinct starts among them, each detected
+    once, are fewer than the release's one crop per sequence per epoch, and far fewer than every
+    start up front."""
+    from experiment_scripts import load_experiment
+
+    count = load_experiment("phase2_inputs_cost.py").aist_count(800)
+    assert count["training_sequences"] == 1227 and count["release_detected"] == 150 * 1227
+    assert count["draws"] == 150 * 77 * 16 and count["crop_starts"] == 1227 * (800 - 39 + 1)
+    assert count["expected_detected"] < count["release_detected"] < count["up_front_detected"]
+    assert count["bound_detected"] == min(count["crop_starts"], count["draws"])

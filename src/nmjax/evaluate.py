@@ -289,6 +289,31 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     return out
 
 
+def phase1_scores(results: dict) -> dict[str, float]:
+    """The headline numbers of `evaluate_phase1`'s results, flat: "tracking_cd" and
+    "tracking_cd_ci95"; "sc", "sc_fixed_nodes" and each one's "_std_over_joints" (with
+    ground-truth joints); "bone_length_variation" (with a skeleton); "joint_distance" and
+    "joint_distance_ci95" and the other skeleton measures (`SKELETON_TRUTH_COLUMNS`) with
+    "skeleton_kept_nodes" (with joints and a skeleton)."""
+    scores = {
+        "tracking_cd": results["tracking"]["mean"],
+        "tracking_cd_ci95": results["tracking"]["ci95"],
+    }
+    for key in ("sc", "sc_fixed_nodes"):
+        if key in results:
+            scores[key] = results[key]["score"]
+            scores[f"{key}_std_over_joints"] = results[key]["std_over_joints"]
+    if "bone_length_variation" in results:
+        scores["bone_length_variation"] = results["bone_length_variation"]["mean"]
+    if "joint_distance" in results:
+        scores["joint_distance"] = results["joint_distance"]["mean"]
+        scores["joint_distance_ci95"] = results["joint_distance"]["ci95"]
+    for key in [k for k, _ in SKELETON_TRUTH_COLUMNS[1:]] + ["skeleton_kept_nodes"]:
+        if key in results:
+            scores[key] = results[key]
+    return scores
+
+
 def keyframe_starts(num_frames: int, rate: int, max_segments: int) -> np.ndarray:
     """Start keyframes ts = 0, SR, 2 SR, ... with ts + SR inside the sequence, at most M of them."""
     starts = np.arange(0, num_frames - rate, rate)

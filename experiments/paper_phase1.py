@@ -203,7 +203,7 @@ def plan(
     if "preset" in groups:
         keys += [RowKey(b, s, "preset") for s in seeds for b in bodies]
     if "comparisons" in groups and 0 in seeds:
-        for variant in ("gt", "no_vol", "no_traj"):
+        for variant in phase1_tables.COMPARISONS:
             keys += [RowKey(b, 0, variant) for b in COMPARISON_BODIES if b in bodies]
     if "alternative" in groups:
         keys += [RowKey(b, 0, "fan_in") for b in bodies if 0 in seeds]

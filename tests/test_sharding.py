@@ -371,6 +371,21 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
+def _two_processes(argv, env) -> list[tuple[str, str]]:
+    """Runs processes 0 and 1 together (`argv(i)`, `env(i)`), waits for both and asserts each
+    exited 0; returns their (stdout, stderr)."""
+    procs = [
+        subprocess.Popen(
+            argv(i), env=env(i), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+        )
+        for i in (0, 1)
+    ]
+    outputs = [proc.communicate(timeout=600) for proc in procs]
+    for proc, (_, err) in zip(procs, outputs, strict=True):
+        assert proc.returncode == 0, err[-3000:]
+    return outputs
+
+
 def test_two_processes_join_and_feed_one_global_batch(tmp_path):
     """Two processes joined with jax.distributed on localhost (one CPU device each, set by the
     environment variables): each feeds its half of every global batch, and the batch they make
@@ -382,19 +397,10 @@ def test_two_processes_join_and_feed_one_global_batch(tmp_path):
     )
     env = {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": _xla_flags(devices=1)}
     env |= {"JAX_COORDINATOR_ADDRESS": f"localhost:{_free_port()}", "JAX_NUM_PROCESSES": "2"}
-    procs = [
-        subprocess.Popen(
-            [sys.executable, __file__, "host", str(tmp_path)],
-            env={**env, "JAX_PROCESS_ID": str(i)},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i in (0, 1)
-    ]
-    outputs = [proc.communicate(timeout=600) for proc in procs]
-    for proc, (_, err) in zip(procs, outputs, strict=True):
-        assert proc.returncode == 0, err[-3000:]
+    outputs = _two_processes(
+        lambda i: [sys.executable, __file__, "host", str(tmp_path)],
+        lambda i: {**env, "JAX_PROCESS_ID": str(i)},
+    )
     hosts = [json.loads(out.strip().splitlines()[-1]) for out, _ in outputs]
     assert [(h["process"], h["processes"], h["devices"]) for h in hosts] == [(0, 2, 2), (1, 2, 2)]
     assert [h["primary"] for h in hosts] == [True, False]
@@ -432,19 +438,10 @@ def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
     )
     assert one.returncode == 0, one.stderr[-3000:]
     hosts = ["--coordinator-address", f"localhost:{_free_port()}", "--num-processes", "2"]
-    procs = [
-        subprocess.Popen(
-            [*argv, "--run", str(tmp_path / "two"), *hosts, "--process-id", str(i)],
-            env={**env, "XLA_FLAGS": _xla_flags(devices=1)},
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for i in (0, 1)
-    ]
-    outputs = [proc.communicate(timeout=600) for proc in procs]
-    for proc, (_, err) in zip(procs, outputs, strict=True):
-        assert proc.returncode == 0, err[-3000:]
+    _two_processes(
+        lambda i: [*argv, "--run", str(tmp_path / "two"), *hosts, "--process-id", str(i)],
+        lambda i: {**env, "XLA_FLAGS": _xla_flags(devices=1)},
+    )
     from nmjax.train import common
 
     expected, got = common.read_metrics(tmp_path / "one"), common.read_metrics(tmp_path / "two")

@@ -50,10 +50,9 @@ train-dyn:
 	$(NMJAX) train-dyn $(DYN_FLAGS) $(ARGS)
 
 # The paper's results on the synthetic bodies at the cpu preset -> experiments/results/. Phase 1:
-# a row per (body, seed, variant), kept across sessions (experiments/paper_phase1.py says when);
-# then phase 2 on each body's seed-0 row. EXP_DATA: the bodies (default all four); SEEDS (0 1);
-# STEPS: phase-1 steps instead of the preset's (smoke runs only); DYN_STEPS: phase-2 steps.
-DYN_STEPS ?= 3000
+# a row per (body, seed, variant), phase 2: a row per body on its seed-0 preset row, each kept
+# across sessions (experiments/paper_phase1.py and paper_phase2.py say when). EXP_DATA: the bodies
+# (default all four); SEEDS (0 1); STEPS: phase-1 steps instead of the preset's (smoke runs only).
 SEEDS ?= 0 1
 EXP_DATA ?= synth-arm synth-hand synth-human synth-quadruped
 EXP_PY := JAX_PLATFORMS=cpu $(VENV)/bin/python
@@ -61,7 +60,7 @@ EXP_PY := JAX_PLATFORMS=cpu $(VENV)/bin/python
 experiments:
 	$(EXP_PY) experiments/paper_phase1.py --data $(EXP_DATA) --seeds $(SEEDS) \
 		$(if $(STEPS),--steps $(STEPS))
-	$(EXP_PY) experiments/table11_12_interpolation.py --dyn-steps $(DYN_STEPS) --data $(EXP_DATA)
+	$(EXP_PY) experiments/paper_phase2.py --data $(EXP_DATA)
 
 clean:
 	rm -rf .pytest_cache .ruff_cache build src/*.egg-info

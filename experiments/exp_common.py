@@ -1,24 +1,19 @@
 """Shared pieces of the paper-table experiments (thin: training and metrics live in nmjax).
 
-Phase-2 runs ("nm" and the positional "vrnn") train on a phase-1 run of `paper_phase1.py` into
-`runs/exp/dyn-<data>-<model>`. Every results file the scripts write carries the stamp of
-`nmjax.provenance` (commit, machine, metric definitions), taken when the script starts.
+Every results file the scripts write carries the stamp of `nmjax.provenance` (commit, machine,
+metric definitions), taken when the script starts.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 import shlex
 import sys
-import time
 from pathlib import Path
 
-from nmjax import atomic, runs
-from nmjax.config import SkelTrainConfig, dyn_preset
+from nmjax.config import SkelTrainConfig
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
-from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "exp"
@@ -41,58 +36,3 @@ def supervised_by_joints(cfg: SkelTrainConfig, data: str) -> SkelTrainConfig:
         model=dataclasses.replace(cfg.model, num_keypoints=int(seq.joints.shape[1])),
         weights=dataclasses.replace(cfg.weights, vol_target="joints"),
     )
-
-
-def _done(run: Path, steps: int) -> bool:
-    info = run / "experiment.json"
-    return info.is_file() and json.loads(info.read_text()).get("steps") == steps
-
-
-def dyn_run(data: str, model: str, skel: Path, steps: int) -> Path:
-    """A trained phase-2 run ("nm" or "vrnn") on the phase-1 run `skel`."""
-    run = RUNS / f"dyn-{data}-{model}"
-    if not _done(run, steps):
-        cfg = dyn_preset(data, "cpu")
-        cfg = dataclasses.replace(
-            cfg,
-            skel_run=str(skel),
-            run=str(run),
-            steps=steps,
-            val_every=steps,
-            ckpt_every=steps,
-            model=dataclasses.replace(cfg.model, model=model),
-        )
-        if run.exists():
-            import shutil
-
-            shutil.rmtree(run)
-        tic = time.perf_counter()
-        runs.train_dynamics(cfg, progress=False)
-        atomic.write_json(
-            run / "experiment.json", {"steps": steps, "seconds": time.perf_counter() - tic}
-        )
-    return run
-
-
-def training_note(runs: dict[str, Path]) -> str:
-    """Markdown lines saying how far each run was trained."""
-    lines = []
-    for label, run in runs.items():
-        cfg = json.loads((run / common.CONFIG_FILE).read_text())
-        info_file = run / "experiment.json"  # a phase-2 run's; a phase-1 row's run has none
-        info = json.loads(info_file.read_text()) if info_file.is_file() else {"steps": cfg["steps"]}
-        size = ""
-        if "data" in cfg and isinstance(cfg["data"], dict):
-            size = (
-                f", G={cfg['data']['grid']}, C={cfg['model']['channels']}, "
-                f"K={cfg['model']['num_keypoints']}, batch {cfg['data']['batch_size']} x "
-                f"T={cfg['data']['frames']}"
-            )
-        took = f"{info['seconds'] / 60:.1f} min" if "seconds" in info else "time in phase1_rows"
-        lines.append(f"- {label}: `{run}` trained {info['steps']} steps ({took} on 2 cores{size})")
-    return "\n".join(lines)
-
-
-def training_header(runs: dict[str, Path]) -> str:
-    """Markdown saying which command made a results file and how far its runs were trained."""
-    return f"Command: `{command_line()}`\n\nTraining:\n{training_note(runs)}\n"

@@ -17,11 +17,11 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import time
 from pathlib import Path
 
 import exp_common as ec
+import phase2_tables
 
 from nmjax import atomic, provenance, viz
 from nmjax.cli import main as nmjax_main
@@ -31,7 +31,6 @@ from nmjax.evaluate import (
     GENERATION_METRICS,
     REFERENCE,
     evaluate_generation_run,
-    fmt,
     generation_markdown,
 )
 from nmjax.train import common
@@ -81,71 +80,6 @@ def run_note(label: str, run: Path) -> str:
     if info.is_file():
         took = f", {json.loads(info.read_text())['seconds'] / 60:.1f} min on the shared CPU"
     return f"- {label}: `{run}`, {cfg.steps} steps ({size}{took})"
-
-
-def _at(results: dict, method: str, n: str, measure: str) -> dict | None:
-    entry = results["methods"].get(method, {}).get(n, {}).get(measure)
-    return entry if entry and math.isfinite(entry.get("mean", math.nan)) else None
-
-
-def what_it_shows(results: dict) -> str:
-    """A paragraph of the comparisons the table supports, read off the numbers."""
-    horizons = [str(n) for n in results["settings"]["horizons"]]
-    methods = [m for m in ("Ours", "VRNN") if m in results["methods"]]
-    longest = horizons[-1]
-    said = []
-    bones = {m: _at(results, m, longest, "bone_error") for m in methods}
-    real_bones = results["real"][longest].get("bone_error")
-    said.append(
-        f"At N = {longest} the bone-length error is "
-        + ", ".join(f"{fmt(b['mean'], b['ci95'])} for {m}" for m, b in bones.items() if b)
-        + (
-            f" (the real test clips: {fmt(real_bones['mean'], real_bones['ci95'])})"
-            if real_bones
-            else " (no real test clip is that long to compare with)"
-        )
-        + "; Ours places joints by forward kinematics, so its bones keep the lengths measured on"
-        " the conditioning frames (up to float round-off, on bones of the pruned tree that skip"
-        " no pruned joint)."
-    )
-    div = {m: [_at(results, m, n, "diversity") for n in horizons] for m in methods}
-    said.append(
-        "Diversity (APD of the samples of one clip) from N = "
-        f"{horizons[0]} to {longest}: "
-        + "; ".join(
-            f"{m} " + " -> ".join(fmt(d["mean"]) if d else "n/a" for d in values)
-            for m, values in div.items()
-        )
-        + " (hold-last-pose: 0)."
-    )
-    measured = [n for n in horizons if _at(results, "Hold last pose", n, "set_distance")]
-    missing = [n for n in horizons if n not in measured]
-    for n in measured:
-        rows = {
-            m: _at(results, m, n, "set_distance")
-            for m in (*methods, "Hold last pose")
-            if _at(results, m, n, "set_distance")
-        }
-        best = min(rows, key=lambda m: rows[m]["mean"])
-        lo, hi = (rows[best]["mean"] + s * rows[best]["ci95"] for s in (-1, 1))
-        overlap = [
-            m
-            for m, r in rows.items()
-            if m != best and abs(r["mean"] - rows[best]["mean"]) <= r["ci95"] + rows[best]["ci95"]
-        ]
-        said.append(
-            f"Set distance to real clips at N = {n}: "
-            + ", ".join(f"{m} {fmt(r['mean'], r['ci95'])}" for m, r in rows.items())
-            + f"; {best} is closest ({fmt(lo)} to {fmt(hi)})"
-            + (f", within the intervals of {', '.join(overlap)}." if overlap else ".")
-        )
-    if missing:
-        said.append(
-            f"At N = {', '.join(missing)} the set distance is n/a: "
-            + results["methods"]["Ours"][missing[0]]["set_distance"]["reason"]
-            + ", so only diversity and bone-length error are measured there."
-        )
-    return " ".join(said)
 
 
 def main() -> None:
@@ -205,7 +139,7 @@ def main() -> None:
             "",
             "## What it shows",
             "",
-            what_it_shows(results),
+            phase2_tables.generation_findings(results),
             "",
         ]
     )

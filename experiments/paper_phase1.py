@@ -246,11 +246,6 @@ def train(key: RowKey, cfg: SkelTrainConfig) -> tuple[Path, float | None]:
     return run, (time.perf_counter() - tic) / 60
 
 
-def trained_run(key: RowKey) -> Path:
-    """The finished run folder of a row at the preset's length (for the phase-2 experiments)."""
-    return train(key, row_config(key))[0]
-
-
 def picture_frame(detector: Detector) -> dict[str, Any]:
     """One test frame for the pictures: the middle frame of the first test crop's keypoints and
     a fixed sample of its occupied cells (rounded to 1e-3, the grid's scale is 1/16)."""

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic, provenance, runs
+from nmjax import atomic, provenance, runs, viz
 from nmjax.config import DYN_INPUTS, dyn_preset
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.voxelize import normalize_sequence
@@ -75,37 +75,6 @@ def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
         {"parents": parents, "root": parents.index(0), "order": topological_order(parents)},
     )
     return folder
-
-
-def plot_curves(path: Path, runs: dict[str, list[dict[str, float]]], title: str) -> None:
-    import matplotlib.pyplot as plt
-
-    from nmjax.viz import save_figure  # selects the Agg backend
-
-    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
-    for (model, records), color in zip(runs.items(), ("tab:blue", "tab:orange"), strict=False):
-        train = [r for r in records if "train/loss" in r]
-        val = [r for r in records if "val/recon" in r]
-        axes[0].plot([r["step"] for r in train], [r["train/recon"] for r in train], color=color)
-        if train and "train/last_pose" in train[0]:
-            last = [r["train/last_pose"] for r in train]
-            axes[0].plot([r["step"] for r in train], last, color="gray", ls="--", lw=0.8)
-        axes[0].set_title("train: Eq. 3 reconstruction, best of S (dashed: last pose)", fontsize=10)
-        steps = [r["step"] for r in val]
-        axes[1].plot(steps, [r["val/recon"] for r in val], color=color, label=f"{model}")
-        best = [r["val/recon_best"] for r in val]
-        axes[1].plot(steps, best, color=color, ls=":", label=f"{model}, best of S")
-        axes[2].plot(steps, [r["val/gen"] for r in val], color=color, label=f"{model}")
-        if val:
-            axes[1].axhline(val[-1]["val/last_pose"], color="gray", ls="--")
-            axes[2].axhline(val[-1]["val/gen_hold"], color="gray", ls="--")
-    axes[1].set_title("val: posterior reconstruction (dashed: last pose)", fontsize=10)
-    axes[2].set_title("val: generation after T/4 frames (dashed: hold)", fontsize=10)
-    for ax in axes:
-        ax.set_yscale("log")
-        ax.set_xlabel("step")
-    axes[1].legend()
-    save_figure(fig, path, title=title, dpi=90)
 
 
 def main() -> None:
@@ -174,7 +143,7 @@ def main() -> None:
         },
         stamp,
     )
-    plot_curves(stem.with_suffix(".png"), curves, f"phase 2 on {args.data} ({source})")
+    viz.plot_phase2_curves(stem.with_suffix(".png"), curves, f"phase 2 on {args.data} ({source})")
     provenance.stamp_png(stem.with_suffix(".png"), stamp)
     print(f"wrote {stem}.json and {stem}.png")
 

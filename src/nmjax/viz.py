@@ -349,3 +349,45 @@ def plot_mcd(path: str | os.PathLike, mcd: dict, title: str = "") -> None:
     ax.set_title(title, fontsize=9)
     ax.legend(fontsize=8)
     save_figure(fig, path)
+
+
+def plot_phase2_curves(
+    path: str | os.PathLike, curves: dict[str, list[dict[str, float]]], title: str = ""
+) -> None:
+    """Phase 2's learning curves, one colour per model, log scale.
+
+    Three panels: the training reconstruction (Eq. 3, best of S posterior samples; dashed grey:
+    predicting each frame by the one before), the validation reconstruction (solid: one sample,
+    dotted: best of S; dashed grey: repeating the last pose) and the validation generation after
+    T/4 observed frames (dashed grey: holding the last observed pose).
+
+    Args:
+      path: PNG file to write.
+      curves: {model: the run's metric records (metrics.jsonl: dicts with "step" and the logged
+        "train/..." or "val/..." values)}.
+      title: figure title.
+    """
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    for (model, records), color in zip(curves.items(), COLORS, strict=False):
+        train = [r for r in records if "train/recon" in r]
+        val = [r for r in records if "val/recon" in r]
+        axes[0].plot([r["step"] for r in train], [r["train/recon"] for r in train], color=color)
+        if train and "train/last_pose" in train[0]:
+            last = [r["train/last_pose"] for r in train]
+            axes[0].plot([r["step"] for r in train], last, color="gray", ls="--", lw=0.8)
+        steps = [r["step"] for r in val]
+        axes[1].plot(steps, [r["val/recon"] for r in val], color=color, label=model)
+        best = [r["val/recon_best"] for r in val]
+        axes[1].plot(steps, best, color=color, ls=":", label=f"{model}, best of S")
+        axes[2].plot(steps, [r["val/gen"] for r in val], color=color, label=model)
+        if val:
+            axes[1].axhline(val[-1]["val/last_pose"], color="gray", ls="--")
+            axes[2].axhline(val[-1]["val/gen_hold"], color="gray", ls="--")
+    axes[0].set_title("train: Eq. 3 reconstruction, best of S (dashed: last pose)", fontsize=10)
+    axes[1].set_title("val: posterior reconstruction (dashed: last pose)", fontsize=10)
+    axes[2].set_title("val: generation after T/4 frames (dashed: hold)", fontsize=10)
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.set_xlabel("step")
+    axes[1].legend(fontsize=8)
+    save_figure(fig, path, title=title, dpi=90)

@@ -1,5 +1,6 @@
-"""experiments/paper_phase1.py and phase1_tables.py: which rows are kept across sessions, the
-plan, a row trained and scored end to end at the tiny size, and the tables rendered from rows."""
+"""experiments/paper_phase1.py, paper_phase2.py and their table renderers: which rows are kept
+across sessions, the plan, a phase-1 row and the phase-2 row on it trained and scored end to end
+at the tiny size, and the tables rendered from rows."""
 
 from __future__ import annotations
 
@@ -25,12 +26,22 @@ def tables():
     return load_experiment("phase1_tables.py")
 
 
-def _head() -> str | None:
-    done = subprocess.run(["git", "rev-parse", "HEAD"], cwd=REPO, capture_output=True, text=True)
+@pytest.fixture(scope="module")
+def driver2(driver):
+    # Loaded after paper_phase1.py, whose registered module it then imports and shares.
+    return load_experiment("paper_phase2.py")
+
+
+def _git(*args: str) -> str | None:
+    done = subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True)
     return done.stdout.strip() if done.returncode == 0 else None
 
 
-def test_a_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver):
+def _head() -> str | None:
+    return _git("rev-parse", "HEAD")
+
+
+def test_a_phase1_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver):
     from nmjax.train import common
 
     if _head() is None or not driver.descends_from(_head()):
@@ -186,37 +197,48 @@ def test_tables_and_pictures_render_from_rows_and_name_the_missing_ones(tables, 
     assert verdict is False and "synth-arm: not better at seed 0" in reasons
 
 
-def test_a_tiny_row_is_trained_scored_written_and_not_trained_again(driver, tmp_path, monkeypatch):
-    from nmjax.config import skel_preset
+def _tiny(driver, root: Path, patch) -> None:
+    """The tiny sizes in place of the cpu preset, and `root`'s data and runs, through `patch`
+    (a pytest MonkeyPatch)."""
+    from nmjax.config import skel_preset, with_steps
+
+    patch.setenv("NMJAX_DATA", str(root / "data"))
+    patch.setattr(driver.ec, "RUNS", root / "runs")
+    patch.setattr(
+        driver, "skel_preset", lambda body, preset: with_steps(skel_preset(body, "tiny"), 2)
+    )
+
+
+@pytest.fixture(scope="module")
+def tiny_phase1(driver, tmp_path_factory) -> Path:
+    """A folder with a tiny synth-arm dataset, runs/ and results/phase1_rows.json holding the
+    seed-0 preset row at 2 steps of the tiny size, made by `paper_phase1.main`."""
     from nmjax.data import synthetic
 
+    root = tmp_path_factory.mktemp("paper-rows")
     synthetic.generate(
         "synth-arm",
-        tmp_path / "data" / "synth-arm",
+        root / "data" / "synth-arm",
         num_sequences=3,
         frames=12,
         points=1500,
         progress=False,
     )
-    monkeypatch.setenv("NMJAX_DATA", str(tmp_path / "data"))
-    monkeypatch.setattr(driver.ec, "RUNS", tmp_path / "runs")
-    monkeypatch.setattr(driver, "skel_preset", lambda body, preset: skel_preset(body, "tiny"))
-    rows_file = tmp_path / "results" / "phase1_rows.json"
-    rows_file.parent.mkdir()
-    argv = [
-        "--data",
-        "synth-arm",
-        "--seeds",
-        "0",
-        "--groups",
-        "preset",
-        "--steps",
-        "2",
-        "--rows",
-        str(rows_file),
-        "--allow-dirty",
-    ]
-    driver.main(argv)
+    (root / "results").mkdir()
+    with pytest.MonkeyPatch.context() as patch:
+        _tiny(driver, root, patch)
+        driver.main(PHASE1_ARGV + ["--rows", str(root / "results" / "phase1_rows.json")])
+    return root
+
+
+PHASE1_ARGV = ["--data", "synth-arm", "--seeds", "0", "--groups", "preset", "--allow-dirty"]
+
+
+def test_a_tiny_phase1_row_is_trained_scored_written_and_not_trained_again(
+    driver, tiny_phase1, monkeypatch
+):
+    _tiny(driver, tiny_phase1, monkeypatch)
+    rows_file = tiny_phase1 / "results" / "phase1_rows.json"
     (row,) = driver.read_rows(rows_file)
     assert (row["body"], row["seed"], row["variant"], row["steps"]) == ("synth-arm", 0, "preset", 2)
     assert row["train_minutes"] > 0 and row["provenance"]["metrics"] == driver.METRICS
@@ -228,9 +250,140 @@ def test_a_tiny_row_is_trained_scored_written_and_not_trained_again(driver, tmp_
     assert (rows_file.parent / "skeletons" / "synth-arm-s0-preset.png").is_file()
     # A second call trains nothing: a clean checkout keeps the row as it is; a dirty one's row
     # is not kept, and the complete run folder is scored again without training.
-    driver.main(argv)
+    driver.main(PHASE1_ARGV + ["--rows", str(rows_file)])
     (again,) = driver.read_rows(rows_file)
     if row["provenance"]["dirty"] is False:
         assert again == row
     else:
         assert again["train_minutes"] is None and again["scores"] == s
+
+
+def test_a_phase2_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver2):
+    from nmjax.train import common
+
+    head = _git("rev-parse", "HEAD")
+    if head is None or not driver2.paper_phase1.descends_from(head, driver2.PHASE2_SINCE):
+        pytest.skip("needs this repository's git history (a clone with PHASE2_SINCE in it)")
+    skel = Path("runs/exp/skel-synth-arm-s0-preset")
+    configs = {m: driver2.dyn_config("synth-arm", m, skel) for m in driver2.MODELS}
+    assert configs["nm"].model.model == "nm" and configs["vrnn"].model.model == "vrnn"
+    assert configs["nm"].run == "runs/exp/dyn-synth-arm-nm" and configs["nm"].inputs == "crop"
+    source = {"row": "synth-arm-s0-preset", "commit": head, "run": str(skel)}
+    stamp = {"commit": head, "dirty": False, "metrics": driver2.METRICS}
+    row = {
+        "body": "synth-arm",
+        "phase1": source,
+        "models": {m: {"config": common.config_to_dict(c)} for m, c in configs.items()},
+        "settings": dict(driver2.SETTINGS),
+        "provenance": stamp,
+    }
+    assert driver2.same_computation(row, configs, source)
+    # The folders' paths, and steps_per_epoch (filled in from the data as training starts), are
+    # no change.
+    moved = {
+        **row["models"]["nm"]["config"],
+        "run": "elsewhere",
+        "skel_run": "/abs/skel",
+        "steps_per_epoch": 2,
+    }
+    assert driver2.same_computation(
+        {**row, "models": {**row["models"], "nm": {"config": moved}}}, configs, source
+    )
+    # A field added since the row was stored reads at its default.
+    older = {k: v for k, v in row["models"]["nm"]["config"].items() if k != "init_from"}
+    assert driver2.same_computation(
+        {**row, "models": {**row["models"], "nm": {"config": older}}}, configs, source
+    )
+    heavier = {m: dataclasses.replace(c, kl_weight=1.0) for m, c in configs.items()}
+    assert not driver2.same_computation(row, heavier, source)
+    assert not driver2.same_computation(row, {"nm": configs["nm"]}, source)
+    assert not driver2.same_computation(row, configs, {**source, "commit": "0" * 40})
+    assert not driver2.same_computation(
+        {**row, "settings": {**row["settings"], "samples": 3}}, configs, source
+    )
+    assert not driver2.same_computation(
+        {**row, "provenance": {**stamp, "dirty": True}}, configs, source
+    )
+    redefined = {**stamp, "metrics": {**driver2.METRICS, "interpolation": "another"}}
+    assert not driver2.same_computation({**row, "provenance": redefined}, configs, source)
+    before = _git("rev-parse", f"{driver2.PHASE2_SINCE}~1")
+    assert not driver2.same_computation(
+        {**row, "provenance": {**stamp, "commit": before}}, configs, source
+    )
+
+
+def test_a_phase2_row_waits_for_its_phase1_row(driver2, tmp_path, capsys):
+    rows1 = tmp_path / "phase1_rows.json"
+    rows1.write_text('{"rows": []}')
+    driver2.main(
+        [
+            "--data",
+            "synth-arm",
+            "--phase1-rows",
+            str(rows1),
+            "--rows",
+            str(tmp_path / "p2.json"),
+            "--dry-run",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert "0 rows to make" in out and "waiting for the phase-1 row of synth-arm" in out
+
+
+def test_a_tiny_phase2_row_is_trained_scored_rendered_and_not_trained_again(
+    driver, driver2, tiny_phase1, monkeypatch
+):
+    from nmjax.config import dyn_preset
+
+    _tiny(driver, tiny_phase1, monkeypatch)
+    monkeypatch.setattr(driver2, "dyn_preset", lambda body, preset: dyn_preset(body, "tiny"))
+    small = {
+        "rates": [3],
+        "trajectories": 2,
+        "max_segments": 1,
+        "horizons": [3],
+        "samples": 2,
+        "cond": 2,
+        "clips": 1,
+        "seed": 0,
+    }
+    monkeypatch.setattr(driver2, "SETTINGS", small)
+    results = tiny_phase1 / "results"
+    rows1, rows2 = results / "phase1_rows.json", results / "phase2_rows.json"
+    argv = ["--data", "synth-arm", "--rows", str(rows2), "--phase1-rows", str(rows1)]
+    (p1,) = driver.read_rows(rows1)
+    driver2.main(argv + ["--allow-dirty"])  # also takes a phase-1 row of a dirty checkout
+    (row,) = driver2.read_rows(rows2)
+    assert row["phase1"] == {
+        "row": "synth-arm-s0-preset",
+        "commit": p1["provenance"]["commit"],
+        "run": p1["run"],
+    }
+    assert set(row["models"]) == {"nm", "vrnn"} and row["settings"] == small
+    for info in row["models"].values():
+        assert info["train_minutes"] > 0 and info["config"]["steps"] == 10
+        assert any("val/recon" in r for r in info["curve"]) and info["final_validation"]
+    assert set(row["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
+    assert set(row["interpolation"]["Ours"]) == {"3"}
+    assert set(row["generation"]["methods"]) == {"Ours", "VRNN", "Hold last pose"}
+    for name in (
+        "train_dyn_synth-arm.png",
+        "train_dyn_synth-arm.json",
+        "generation_synth-arm.md",
+        "generation_synth-arm.png",
+        "table11_12_synth-arm.png",
+        "table11_12_keypoints.md",
+    ):
+        assert (results / name).is_file(), name
+    table = (results / "table11_12_interpolation.md").read_text()
+    assert "| Ours |" in table and "Lerp" in table
+    assert "Not made yet: synth-hand, synth-human, synth-quadruped" in table
+    # A second call trains nothing: a clean checkout keeps the row as it is; a dirty one's row
+    # is not kept, and its complete runs are scored again without training.
+    driver2.main(argv + ["--allow-dirty"])
+    (again,) = driver2.read_rows(rows2)
+    if row["provenance"]["dirty"] is False:
+        assert again == row
+    else:
+        assert all(m["train_minutes"] is None for m in again["models"].values())
+        assert again["interpolation"] == row["interpolation"]

@@ -87,7 +87,15 @@ def stem_and_pool(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
     return net.pool1(net.stem(voxels[..., None]))
 
 
-@pytest.mark.parametrize("form", conv_kernels.CPU_FORMS)
+# The stem's k=5 kernel: Winograd does not apply and takes the stacked form, so it is no case.
+STEM_FORMS = [
+    form
+    for form in conv_kernels.CPU_FORMS
+    if conv_kernels.resolve(form, "cpu", (8, 8, 8), 5, jnp.float32) == form
+]
+
+
+@pytest.mark.parametrize("form", STEM_FORMS)
 def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     # A 2D form: the blocked path, whatever the backend.
     net = blocks.FeatureNet(8, (4, 4), 8, 4, evaluation=Evaluation(form), rngs=nnx.Rngs(5))

@@ -6,13 +6,15 @@
 For every phase-1 run folder (its `affinity.npy`, `keypoint_stats.npz` and a detector checkpoint)
 both tree rules of `nmjax.skeleton.extract_skeleton` run on the learned affinity. Each keypoint
 is labelled with the ground-truth joint it is most often nearest to over the test crops of
-`nmjax evaluate`; an edge of a tree is *plausible* when the labels of its two keypoints are the
-same joint or joints one bone apart in the body's true tree (`meta.json` parents). Reported per
+`nmjax evaluate` (`metrics.node_joints`); an edge of a tree is *plausible* when the labels of its
+two keypoints are the same joint or joints one bone apart in the body's true tree (`meta.json`
+parents): the share of plausible edges is `metrics.edge_precision` within one bone. Reported per
 run and method: plausible edges over all K - 1 edges, over the edges of the pruned tree (kept
 nodes, mean alpha >= 0.2, re-attached to their nearest kept ancestor), the parents that differ
 between the methods, and the median extraction time (with K = 28 random affinities as well).
-Writes experiments/results/alg1_methods.{md,json}, stamped with the commit, machine and metric
-definitions (`nmjax.provenance`).
+Writes experiments/results/alg1_methods_runs.{md,json} (alg1_methods.{md,json} are
+phase1_tables.py's; this script's earlier results are in results/archive/alg1_methods.*),
+stamped with the commit, machine and metric definitions (`nmjax.provenance`).
 """
 
 from __future__ import annotations
@@ -24,9 +26,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy.sparse import csgraph
 
-from nmjax import provenance
+from nmjax import metrics, provenance
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.runs import AFFINITY_FILE, STATS_FILE, Detector
@@ -43,32 +44,20 @@ METRICS = {
 }
 
 
-def joint_labels(detector: Detector, max_crops: int) -> np.ndarray:
-    """(K,) the ground-truth joint each keypoint is most often nearest to on the test crops."""
-    votes = None
-    for _, _, joints, keypoints, _ in phase1_outputs(detector, max_crops):
-        kp = keypoints.reshape(-1, *keypoints.shape[-2:])[..., :3]  # (F, K, 3)
-        gt = joints.reshape(-1, *joints.shape[-2:])  # (F, J, 3)
-        nearest = np.linalg.norm(kp[:, :, None] - gt[:, None], axis=-1).argmin(-1)  # (F, K)
-        counts = np.stack([np.bincount(col, minlength=gt.shape[1]) for col in nearest.T])
-        votes = counts if votes is None else votes + counts
-    return votes.argmax(axis=1)
+def crop_frames(detector: Detector, max_crops: int) -> tuple[np.ndarray, np.ndarray]:
+    """(F, K, 4) keypoints and (F, J, 3) ground-truth joints of every frame of the test crops."""
+    keypoints, joints = [], []
+    for _, _, gt, kp, _ in phase1_outputs(detector, max_crops):
+        keypoints.append(kp.reshape(-1, *kp.shape[-2:]))
+        joints.append(gt.reshape(-1, *gt.shape[-2:]))
+    return np.concatenate(keypoints), np.concatenate(joints)
 
 
-def bone_hops(parents: list[int]) -> np.ndarray:
-    """(J, J) hop distances in the ground-truth tree."""
-    num = len(parents)
-    adj = np.zeros((num, num))
-    for k, p in enumerate(parents):
-        if k != p and p >= 0:
-            adj[k, p] = adj[p, k] = 1.0
-    return csgraph.shortest_path(adj, directed=False, unweighted=True)
-
-
-def plausible(edges: list[tuple[int, int]], labels: np.ndarray, hops: np.ndarray) -> float:
-    if not edges:
-        return float("nan")
-    return float(np.mean([hops[labels[a], labels[b]] <= 1 for a, b in edges]))
+def plausible(
+    keypoints: np.ndarray, joints: np.ndarray, kept: np.ndarray, parents, true_parents
+) -> float:
+    """`metrics.edge_precision` (within one bone) of the tree `parents` over the `kept` nodes."""
+    return float(metrics.edge_precision(keypoints, joints, kept, parents, true_parents))
 
 
 def median_ms(affinity: np.ndarray, method: str, repeats: int = 200) -> float:
@@ -86,27 +75,27 @@ def evaluate_run(run: Path, max_crops: int) -> dict:
     with np.load(run / STATS_FILE) as stats:
         intensities = np.asarray(stats["intensities"])
     detector = Detector.load(run)
-    meta = read_meta(detector.cfg.data.name, detector.cfg.data.root)
-    labels = joint_labels(detector, max_crops)
-    hops = bone_hops(meta["parents"])
+    true_parents = read_meta(detector.cfg.data.name, detector.cfg.data.root)["parents"]
+    keypoints, joints = crop_frames(detector, max_crops)
     out = {"run": str(run), "data": detector.cfg.data.name, "K": int(affinity.shape[-1])}
+    every = np.ones(affinity.shape[-1], bool)
     trees = {}
     for method in METHODS:
         skeleton = extract_skeleton(affinity, method=method)
         pruned, keep = prune(skeleton, intensities)
-        kept_edges = [(p, k) for p, k in pruned.edges() if keep[k]]
         trees[method] = skeleton.parents
         out[method] = {
             "parents": list(skeleton.parents),
             "root": skeleton.root,
             "depth": skeleton.depth,
-            "plausible_all": plausible(skeleton.edges(), labels, hops),
-            "plausible_pruned": plausible(kept_edges, labels, hops),
-            "pruned_edges": len(kept_edges),
+            "plausible_all": plausible(keypoints, joints, every, skeleton.parents, true_parents),
+            "plausible_pruned": plausible(keypoints, joints, keep, pruned.parents, true_parents),
+            # kept nodes hang off kept nodes (`prune`): every kept non-root node has one edge
+            "pruned_edges": int(np.sum(keep)) - 1,
             "ms": median_ms(affinity, method),
         }
     out["parents_differ"] = int(np.sum(np.array(trees["algorithm1"]) != trees["filtered"]))
-    out["labels"] = labels.tolist()
+    out["labels"] = np.asarray(metrics.node_joints(keypoints, joints)).tolist()
     return out
 
 
@@ -124,7 +113,7 @@ def main() -> int:
     }
     command = "JAX_PLATFORMS=cpu .venv/bin/python " + shlex.join(sys.argv)
     provenance.write_json(
-        RESULTS / "alg1_methods.json",
+        RESULTS / "alg1_methods_runs.json",
         {"command": command, "runs": rows, "random28_ms": random28},
         stamp,
     )
@@ -157,7 +146,7 @@ def main() -> int:
         + ", ".join(f"{m} {v:.3f} ms" for m, v in random28.items()),
         "",
     ]
-    provenance.write_markdown(RESULTS / "alg1_methods.md", "\n".join(lines), stamp)
+    provenance.write_markdown(RESULTS / "alg1_methods_runs.md", "\n".join(lines), stamp)
     print("\n".join(lines))
     return 0
 

@@ -8,8 +8,8 @@ trilinear upsampling evaluated on the coarse grid.
 The fast form of every case is the model's own code (`VoxelDecoder`, `Conv3D` and its kernels in
 `nmjax.models.conv_kernels`, the stem and first pool of `FeatureNet`, an upsampling
 `ConvNormAct`, `keypoints.gaussian_maps`, the grain pipeline), its layers built with the form
-each case measures (`conv_kernels.Evaluation`); the plain forms are the tests'
-(`tests/plain_forms.py`), where `tests/test_plain_forms.py` checks that both compute the same
+each case measures (`conv_kernels.Evaluation`); the plain forms are the library's reference
+(`nmjax.models.reference`), where `tests/test_plain_forms.py` checks that both compute the same
 function. Each row also reports their relative output and gradient differences at the timed
 shapes.
 
@@ -21,11 +21,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import importlib.util
 import sys
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -37,11 +35,10 @@ from nmjax import keypoints as kp_lib
 from nmjax import provenance
 from nmjax.bench import environment, print_and_save
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
-from nmjax.models import blocks, conv_kernels
+from nmjax.models import blocks, conv_kernels, reference
 from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import VoxelDecoder
 
-PLAIN_FORMS = Path(__file__).resolve().parents[1] / "tests" / "plain_forms.py"
 METRICS = {
     "plain_s, fast_s": "median seconds of --repeats jitted forward + backward calls (value and "
     "gradient with respect to every input and parameter) of the plain and the optimised form; "
@@ -49,14 +46,6 @@ METRICS = {
     "speedup": "plain_s / fast_s",
     "grad_rel_diff": "||g_plain - g_fast|| / ||g_plain|| over all inputs and parameters",
 }
-
-
-def load_plain_forms() -> Any:
-    """The module tests/plain_forms.py (the tests' reference forms, not part of the package)."""
-    spec = importlib.util.spec_from_file_location("plain_forms", PLAIN_FORMS)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,7 +95,6 @@ def stem_pool(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
 def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None = None) -> list:
     """The cases (a)-(d), (f), (g) on the shapes of `skel_preset(data, preset)`; `batch`
     overrides B*T."""
-    plain = load_plain_forms()
     cfg = skel_preset(data, preset)
     m = cfg.model
     b, t = cfg.data.batch_size, cfg.data.frames
@@ -131,7 +119,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             "(a, g) whole decoder: input conv once per crop, upsampled convs coarse",
             shape,
             decoder,
-            plain.decoder,
+            reference.decoder,
             VoxelDecoder.__call__,
             maps,
             context,
@@ -140,7 +128,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             "(a) ... the input conv alone",
             shape,
             decoder,
-            plain.decoder_input,
+            reference.decoder_input,
             VoxelDecoder.input_features,
             maps,
             context,
@@ -158,7 +146,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 f"(b) sliced 3D conv: {label}",
                 f"({bt},{n},{n},{n},{ci})->{co} k{ks}",
                 conv,
-                plain.conv3d,
+                reference.conv3d,
                 blocks.Conv3D.__call__,
                 normal(bt, n, n, n, ci),
                 applies=cpu_forms_used,
@@ -177,7 +165,12 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
     )
     cases.append(
         module_case(
-            "(c) stem coordinates convolved once", stem_shape, net, plain.stem_conv, stem, voxels
+            "(c) stem coordinates convolved once",
+            stem_shape,
+            net,
+            reference.stem_conv,
+            stem,
+            voxels,
         )
     )
     net = blocks.FeatureNet(
@@ -188,7 +181,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
             "(f) stem in 2x2x2 blocks, first pool",
             f"{stem_shape}, pool",
             net,
-            plain.stem_and_pool,
+            reference.stem_and_pool,
             stem_pool,
             voxels,
             applies=cpu_forms_used,
@@ -205,7 +198,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
                 f"(g) conv after upsampling, coarse: {label}",
                 f"({bt},{n},{n},{n},{ci}) -> x2 -> {block.conv.kernel.shape[-1]} k3",
                 block,
-                plain.conv_after_upsampling,
+                reference.conv_after_upsampling,
                 blocks.ConvNormAct.__call__,
                 normal(bt, n, n, n, ci),
                 applies=cpu_forms_used,
@@ -219,7 +212,7 @@ def optimisation_cases(preset: str, data: str = "synth-arm", batch: int | None =
         Case(
             "(d) separable gaussian maps",
             f"B={b} T={t} K={k} n={g}",
-            lambda x: plain.gaussian_maps(x, sigma, g),
+            lambda x: reference.gaussian_maps(x, sigma, g),
             lambda x: kp_lib.gaussian_maps(x, sigma, g),
             (keypoints,),
         )

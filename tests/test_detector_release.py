@@ -9,6 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import release_files as rf
 from flax import nnx
 
 from nmjax.config import skel_preset
@@ -96,21 +97,71 @@ def test_hourglass_has_a_residual_block_before_every_upsampling():
     assert [widths(s) for s in hg.skips] == [(64, 64), (32, 32), (48, 48)]
     assert [widths(r) for r in hg.up_res] == [(72, 72), (48, 48), (32, 32)]
     assert [u.conv.kernel[...].shape[3:] for u in hg.up] == [(72, 48), (48, 32), (32, 64)]
-    # res, up, + skip at every level, computed in that order.
+    # The layers under the release's names, and the hourglass against its flat program.
+    layers = _release_hourglass_layers(hg)
+    released = {
+        name.split(".")[4]
+        for name in rf.release_shapes()
+        if name.startswith("kypt_detector.vox_to_kypt.extract_features.4.")
+    }
+    assert set(layers) == released
     x = _rand(4, (1, 16, 16, 16, 64)) * 0.1
 
     @nnx.jit  # one compiled program each: op by op, the hourglass takes minutes
-    def by_hand(hg, x):
-        skips, y = [], x
-        for down, skip in zip(hg.down, hg.skips, strict=True):
-            skips.append(skip(y))
-            y = down(y)
-        for res, up, skip in zip(hg.up_res, hg.up, reversed(skips), strict=True):
-            y = up(res(y)) + skip
-        return y
+    def by_program(hg, x):
+        named, kept = _release_hourglass_layers(hg), {}
+        for step in HOURGLASS_PROGRAM:
+            action, _, name = step.rpartition(" ")
+            if action == "keep":
+                kept[name] = named[name](x)
+            elif action == "add":
+                x = x + kept[name]
+            else:
+                x = named[name](x)
+        return x
 
     whole = nnx.jit(lambda hg, x: hg(x))(hg, x)
-    np.testing.assert_allclose(whole, by_hand(hg, x), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(whole, by_program(hg, x), rtol=1e-5, atol=1e-6)
+
+
+# The three-level hourglass of paper Fig. 9 as one flat program over the release's layer names
+# (level 1 at the input resolution, shared/release/aist_state_dict.tsv): "keep L" sets aside
+# L(x) of the current x, "add L" adds what was set aside. Written out step by step so that it
+# shares no loop or ordering with `Hourglass.__call__`.
+HOURGLASS_PROGRAM = (
+    "keep skip_res1",
+    "encoder_pool1",
+    "encoder_res1",
+    "keep skip_res2",
+    "encoder_pool2",
+    "encoder_res2",
+    "keep skip_res3",
+    "encoder_pool3",
+    "encoder_res3",
+    "decoder_res3",
+    "decoder_upsample3",
+    "add skip_res3",
+    "decoder_res2",
+    "decoder_upsample2",
+    "add skip_res2",
+    "decoder_res1",
+    "decoder_upsample1",
+    "add skip_res1",
+)
+
+
+def _release_hourglass_layers(hg: blocks.Hourglass) -> dict[str, nnx.Module]:
+    """The hourglass's layers by the release's names: its module lists hold level l (1-based)
+    at index l - 1 going down and at index L - l coming up (the widths pin which is which)."""
+    levels = len(hg.down)
+    layers = {}
+    for level in range(1, levels + 1):
+        layers[f"encoder_pool{level}"] = hg.down[level - 1].pool
+        layers[f"encoder_res{level}"] = hg.down[level - 1].res
+        layers[f"skip_res{level}"] = hg.skips[level - 1]
+        layers[f"decoder_res{level}"] = hg.up_res[levels - level]
+        layers[f"decoder_upsample{level}"] = hg.up[levels - level]
+    return layers
 
 
 def test_groupnorm_epsilon_is_pytorchs_default(default_detector):

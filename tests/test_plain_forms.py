@@ -1,4 +1,4 @@
-"""The detector's optimised forms against the plain formulations of `plain_forms.py`.
+"""The detector's optimised forms against the plain formulations of `nmjax.models.reference`.
 
 The real modules (`VoxelDecoder`, `FeatureNet`, `Conv3D`, `keypoints.gaussian_maps`) compute the
 same function as the straightforward forms, in value and in the gradient with respect to the
@@ -14,12 +14,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-import plain_forms
 import pytest
 from flax import nnx
 
 from nmjax import keypoints as kp_lib
-from nmjax.models import blocks, conv_kernels
+from nmjax.models import blocks, conv_kernels, reference
 from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import VoxelDecoder
 
@@ -70,7 +69,7 @@ def test_decoder_convolves_the_context_once_per_crop_as_if_for_every_frame(strid
     b, t, g, k, c = 1, 2, 2, 3, 8
     dec = VoxelDecoder(2 * k + c + 3, c, stride, rngs=nnx.Rngs(1))
     fast, params = on_params(VoxelDecoder.__call__, dec)
-    plain, _ = on_params(plain_forms.decoder, dec)
+    plain, _ = on_params(reference.decoder, dec)
     maps, context = normal(b, t, g, g, g, k), normal(b, g, g, g, c + k + 3)
     assert_same_function(fast, plain, params, maps, context)
 
@@ -79,7 +78,7 @@ def test_feature_net_stem_equals_coordinates_concatenated_and_convolved():
     net = blocks.FeatureNet(8, (4, 4), 8, 4, rngs=nnx.Rngs(2))
     voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
     fast, params = on_params(blocks.FeatureNet.__call__, net)
-    plain, _ = on_params(plain_forms.feature_net, net)
+    plain, _ = on_params(reference.feature_net, net)
     assert_same_function(fast, plain, params, voxels)
 
 
@@ -88,14 +87,22 @@ def stem_and_pool(net: blocks.FeatureNet, voxels: jax.Array) -> jax.Array:
     return net.pool1(net.stem(voxels[..., None]))
 
 
-@pytest.mark.parametrize("form", conv_kernels.CPU_FORMS)
+# The stem's k=5 kernel: Winograd does not apply and takes the stacked form, so it is no case.
+STEM_FORMS = [
+    form
+    for form in conv_kernels.CPU_FORMS
+    if conv_kernels.resolve(form, "cpu", (8, 8, 8), 5, jnp.float32) == form
+]
+
+
+@pytest.mark.parametrize("form", STEM_FORMS)
 def test_stem_and_pool_in_blocks_equal_them_on_the_full_grid(form):
     # A 2D form: the blocked path, whatever the backend.
     net = blocks.FeatureNet(8, (4, 4), 8, 4, evaluation=Evaluation(form), rngs=nnx.Rngs(5))
     net.stem.conv.bias[...] = jnp.array([0.3, -0.2])  # a bias shows up in the blocks' tiling
     voxels = jnp.asarray(RNG.random((2, 8, 8, 8)) > 0.7, jnp.float32)
     fast, params = on_params(stem_and_pool, net)
-    plain, _ = on_params(plain_forms.stem_and_pool, net)
+    plain, _ = on_params(reference.stem_and_pool, net)
     assert_same_function(fast, plain, params, voxels)
 
 
@@ -107,7 +114,7 @@ def test_conv_after_upsampling_on_the_coarse_grid_equals_it_on_the_fine_grid(for
     )
     block.conv.bias[...] = jnp.array([0.5, -1.0, 2.0, 0.1])
     fast, params = on_params(blocks.ConvNormAct.__call__, block)
-    plain, _ = on_params(plain_forms.conv_after_upsampling, block)
+    plain, _ = on_params(reference.conv_after_upsampling, block)
     assert_same_function(fast, plain, params, normal(*shape))
 
 
@@ -116,7 +123,7 @@ def test_conv3d_in_2d_convolutions_equals_xla_3d_convolution(form):
     conv = blocks.Conv3D(2, 3, 3, evaluation=Evaluation(form), rngs=nnx.Rngs(3))
     conv.bias[...] = jnp.array([0.5, -1.0, 2.0])
     fast, params = on_params(blocks.Conv3D.__call__, conv)
-    plain, _ = on_params(plain_forms.conv3d, conv)
+    plain, _ = on_params(reference.conv3d, conv)
     assert_same_function(fast, plain, params, normal(2, 5, 4, 6, 2))
 
 
@@ -124,7 +131,7 @@ def test_separable_gaussian_maps_equal_the_dense_ones():
     keypoints = jnp.concatenate([0.4 * normal(2, 3, 4, 3), jnp.full((2, 3, 4, 1), 0.6)], -1)
     assert_same_function(
         lambda x: kp_lib.gaussian_maps(x, 1.5, 5),
-        lambda x: plain_forms.gaussian_maps(x, 1.5, 5),
+        lambda x: reference.gaussian_maps(x, 1.5, 5),
         keypoints,
     )
 
@@ -141,7 +148,7 @@ def test_plain_gaussian_maps_against_numpy():
         ],
         axis=-1,
     )
-    got = plain_forms.gaussian_maps(jnp.asarray(kp), sigma, n)
+    got = reference.gaussian_maps(jnp.asarray(kp), sigma, n)
     np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-7)
 
 

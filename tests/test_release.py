@@ -20,7 +20,7 @@ import release_files as rf
 from flax import nnx
 
 from nmjax import release
-from nmjax.models import blocks
+from nmjax.models import blocks, conv_kernels
 from nmjax.models.dynamics import GRUCell
 
 FIXTURE = Path(__file__).parent / "release_fixture"
@@ -150,17 +150,56 @@ def _conv_of(kernel: np.ndarray, **kwargs) -> blocks.Conv3D:
     return conv
 
 
-@pytest.mark.parametrize("form", ["native", "stacked", "auto"])
+def _equations(jaxpr) -> list:
+    """Every equation of `jaxpr` and of the jaxprs nested in its equations (custom VJPs, jits)."""
+    found = []
+    for eqn in jaxpr.eqns:
+        found.append(eqn)
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, (list, tuple)) else [value]:
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):
+                    found += _equations(inner)
+    return found
+
+
+# What each form of a 3x3x3 convolution with 2 input channels traces to: (spatial dims, input
+# channels) of every convolution it runs. Winograd runs none: its channel mixing is one batched
+# matmul over the 6^3 = 216 positions of a transformed tile.
+CONVOLUTIONS_OF_FORM = {
+    "native": [(3, 2)],  # XLA's 3D convolution
+    "stacked": [(2, 3 * 2)],  # one 2D convolution, the 3 taps along x stacked on the channels
+    "per_tap": [(2, 2)] * 3,  # one 2D convolution per tap along x
+    "winograd": [],
+}
+
+
+@pytest.mark.parametrize("form", [*CONVOLUTIONS_OF_FORM, "auto"])
 def test_conv3d_tap_lands_where_pytorch_puts_it(form):
     # Conv3d (padding 1): out[o, x] = sum W[o, i, a, b, c] in[i, x + a - 1, y + b - 1, z + c - 1].
     weight = _one_hot((2, 2, 3, 3, 3), (1, 0, 0, 1, 2))  # (out, in, kd, kh, kw)
-    conv = _conv_of(release.conv_kernel(weight))
-    conv.conv_form = form
+    conv = _conv_of(release.conv_kernel(weight), evaluation=conv_kernels.Evaluation(form=form))
     x = np.zeros((1, 8, 8, 8, 2), np.float32)
     x[0, 3, 3, 3, 0] = 1.0
     out = np.asarray(conv(jnp.asarray(x)))
     hits = np.argwhere(np.abs(out) > 1e-6)
     np.testing.assert_array_equal(hits, [[0, 3 - 0 + 1, 3 - 1 + 1, 3 - 2 + 1, 1]])
+    # The case ran the form it names ("auto": the one `resolve` picks on this backend).
+    resolved = conv_kernels.resolve(form, None, (8, 8, 8), 3, jnp.float32)
+    assert form == "auto" or resolved == form
+    equations = _equations(jax.make_jaxpr(conv)(jnp.asarray(x)).jaxpr)
+    convolutions = [
+        (eqn.invars[0].aval.ndim - 2, eqn.invars[0].aval.shape[-1])
+        for eqn in equations
+        if eqn.primitive.name == "conv_general_dilated"
+    ]
+    assert convolutions == CONVOLUTIONS_OF_FORM[resolved], (form, resolved)
+    tile_matmuls = [
+        eqn
+        for eqn in equations
+        if eqn.primitive.name == "dot_general" and eqn.invars[0].aval.shape[0] == 6**3
+    ]
+    assert bool(tile_matmuls) == (resolved == "winograd"), (form, resolved)
 
 
 def test_strided_and_transposed_taps_land_where_pytorch_puts_them():

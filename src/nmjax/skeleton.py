@@ -219,8 +219,8 @@ def binarize_affinity(a: np.ndarray, n_neighbors: int, row_mean_filter: bool = F
 def shortest_paths(lengths: np.ndarray) -> np.ndarray:
     """All-pairs shortest path lengths of an undirected graph, NO_PATH where unreachable.
 
-    Floyd-Warshall in NumPy: the distances Dijkstra gives (Algorithm 1 names Dijkstra), at a
-    fraction of scipy.sparse.csgraph's per-call validation cost for graphs of a few dozen nodes.
+    Floyd-Warshall in NumPy: the distances Dijkstra gives (Algorithm 1 names Dijkstra), without
+    scipy.sparse.csgraph's per-call input validation, for graphs of a few dozen nodes.
 
     Args:
       lengths: (K, K) symmetric non-negative edge lengths, 0 where there is no edge.

@@ -5,10 +5,12 @@ backend. Every fast form here computes the same function as a plain XLA form bes
 `*_native` functions), which is what GPU/TPU backends run and what the tests compare against:
 
 - a stride-1 'SAME' convolution (`conv3d_same` against `conv3d_native`): on CPU, XLA's 3D
-  convolution is 3-10x slower than its 2D one, so a float32 3x3x3 kernel on a grid of side 8 or
-  more is evaluated by Winograd's F(4x4x4, 3x3x3) (`winograd_conv3d_valid`: 1/8 of the
-  multiply-adds, as batched matmuls) and any other kernel as one 2D convolution over (y, z) with
-  x folded into the batch and the k taps along x stacked on the channel axis (`stacked_planes`);
+  convolution is 6.2-13.5x slower forward + backward than the forms below at the cpu preset's
+  shapes (case (b) of experiments/results/bench_optimisations_cpu.json), so a float32 3x3x3
+  kernel on a grid of side 8 or more is evaluated by Winograd's F(4x4x4, 3x3x3)
+  (`winograd_conv3d_valid`: 1/8 of the multiply-adds, as batched matmuls) and any other kernel
+  as one 2D convolution over (y, z) with x folded into the batch and the k taps along x stacked
+  on the channel axis (`stacked_planes`);
 - the 2x2x2 strided convolution ("pool") as a space-to-depth reshape and a matmul, the 2x2x2
   transposed convolution as a matmul and a depth-to-space reshape (every backend);
 - the two thin full-grid layers, on CPU, on the half grid in 2x2x2 blocks, where XLA's 2D
@@ -21,7 +23,8 @@ backend. Every fast form here computes the same function as a plain XLA form bes
 `resolve` holds the only backend check: "auto" (config field `model.conv_form`) is XLA's native
 convolution off CPU and the CPU forms on CPU; a named form is taken on every backend (to compare
 them). `Evaluation` carries the form and the compute dtype (`model.compute_dtype`) to each layer.
-docs/performance.md has the measurements behind each choice.
+docs/performance.md describes the measurements behind each choice; the timed comparisons of each
+fast form with its plain one are experiments/results/bench_optimisations_cpu.json.
 """
 
 from __future__ import annotations
@@ -258,12 +261,12 @@ def conv3d_valid(padded: jax.Array, kernel: jax.Array, form: str = "auto") -> ja
 
 
 # With YNNPACK's convolutions switched off (nmjax/__init__.py), XLA's CPU 2D convolution beats
-# its 3D convolution at every shape of the detector, forward + backward, by 2.5-15x. Stacking the
-# k taps along X on the channel axis (one 2D convolution with a k-times deeper kernel) is as fast
-# as one 2D convolution per tap at the cpu preset's widths and faster at the paper's channels; a
-# k-times wider output (the taps' kernels side by side, the results shifted and summed) was
-# faster for single convolutions of few output channels but slower in the step
-# (docs/performance.md, "CPU convolutions", "GroupNorm and stacked taps").
+# its 3D convolution: the stem's k=5 convolution as stacked taps is 12.4x faster forward +
+# backward at the cpu preset (case (b) of experiments/results/bench_optimisations_cpu.json).
+# Stacking the k taps along X on the channel axis (one 2D convolution with a k-times deeper
+# kernel) was kept over one 2D convolution per tap and over a k-times wider output (the taps'
+# kernels side by side, the results shifted and summed) by the comparisons docs/performance.md
+# describes ("CPU convolutions", "GroupNorm and stacked taps"); no results file holds them.
 @functools.partial(jax.custom_vjp, nondiff_argnums=(1,))
 def stacked_planes(padded: jax.Array, k: int) -> jax.Array:
     """The k planes padded[:, a : a + X] (X = padded's first side - k + 1) concatenated on the
@@ -476,7 +479,9 @@ def transposed_conv2(x: jax.Array, kernel: jax.Array) -> jax.Array:
 # `space_to_depth` layout), which XLA's 2D convolutions handle well:
 # - a stride-1 convolution of a thin input equals a k=3 convolution of its blocks with a
 #   block-structured kernel (`blocked_kernel`); the stem (1 -> C/4 channels, k=5) costs 1.7x
-#   the arithmetic that way and runs 2.8x faster;
+#   the arithmetic that way, and the stem and first pool run 30x faster forward + backward than
+#   on the full grid by XLA's 3D convolution (case (f) of
+#   experiments/results/bench_optimisations_cpu.json);
 # - a k=3 convolution after a 2x trilinear upsampling equals one k=3 convolution of the coarse
 #   input that writes the 8 output phases of each block (`upsample_conv3d_blocks`), with the
 #   same arithmetic as the fine convolution and no fine input at all (the decoder's two
@@ -554,7 +559,7 @@ def coord_conv3d(x: jax.Array, kernel: jax.Array, form: str = "auto") -> jax.Arr
     every sample, are convolved once, in closed form (`coord_channels_conv3d`), and broadcast
     instead of being concatenated to every sample (4x cheaper for the detector's one-channel
     occupancy). Where a CPU form evaluates it, x is convolved on the n/2 grid in 2x2x2 blocks
-    (`blocked_kernel`; on CPU 2.8x faster than the thin convolution on the full grid).
+    (`blocked_kernel`; the comment opening this section says what that was measured at).
     """
     n, k = x.shape[1], kernel.shape[0]
     if x.shape[1:4] != (n, n, n) or kernel.shape[3] != x.shape[-1] + 3:
@@ -712,8 +717,9 @@ def cell_sums(x: jax.Array) -> jax.Array:
 
     XLA's CPU reduction over a middle axis keeps only the C minor values per row in flight;
     folding up to 64 consecutive cells into the minor axis first (one reduction over S / f rows
-    of f C values, then one over f) is 1.3-1.6x faster forward + backward in GroupNorm, and its
-    float32 sums are closer to float64 than a single long reduction.
+    of f C values, then one over f) shortens those rows (docs/performance.md, "GroupNorm and
+    stacked taps", describes the change; no results file times it alone), and its float32 sums
+    are closer to float64 than a single long reduction.
     """
     n, s, c = x.shape
     fold = math.gcd(s, 64)
@@ -750,9 +756,9 @@ def group_norm(
     Every reduction is a per-channel sum (`cell_sums`) and the rest is one multiply-add per
     element with per-(sample, channel) coefficients, forward and backward (a hand-written VJP:
     XLA fuses the autodiff form's five reductions each with a recomputation of the forward and
-    of the incoming gradient, re-reading the inputs in every one of them). On CPU its forward +
-    backward (with the LeakyReLU after it) is 1.3x faster than flax's at the cpu preset's shapes
-    and 2.7-4x at the paper's channels, where flax's reductions took a tenth of the phase-1 step.
+    of the incoming gradient, re-reading the inputs in every one of them). docs/performance.md,
+    "GroupNorm and stacked taps", describes the step it came with; no results file times it
+    against flax's alone.
     """
     return _group_norm_fwd(x, scale, bias, groups, eps)[0]
 

@@ -1,8 +1,10 @@
-"""The plain formulations of what the detector computes in an optimised form.
+"""The plain formulations of what the detector computes in an optimised form: the reference.
 
 Each function takes a real module of `nmjax.models` (its parameters) and computes what DESIGN §6
-writes down, the straightforward way, with none of the model's shortcuts. `test_plain_forms.py`
-checks the model against them in value and gradient; `experiments/bench_optimisations.py` times
+writes down, the straightforward way, with none of the model's shortcuts: every convolution is
+XLA's own 3D convolution (`conv_kernels.conv3d_native`) on the full grid it is printed on. The
+model never calls them; they are what its fast forms are held to. tests/test_plain_forms.py
+checks the model against them in value and gradient; experiments/bench_optimisations.py times
 the model against them.
 """
 
@@ -14,18 +16,17 @@ from flax import nnx
 
 from nmjax.keypoints import coord_grid
 from nmjax.models.blocks import LEAK, Conv3D, ConvNormAct, FeatureNet
-from nmjax.models.conv_kernels import upsample_trilinear
+from nmjax.models.conv_kernels import conv3d_native
 from nmjax.models.detector import VoxelDecoder
 
 
-def conv3d(conv: Conv3D, x: jax.Array) -> jax.Array:
-    """A stride-1 `Conv3D` as XLA's own 3D convolution ('SAME') plus the bias.
+def conv3d(conv: Conv3D, x: jax.Array, op: str = "same") -> jax.Array:
+    """A stride-1 `Conv3D` as XLA's own 3D convolution ('SAME') plus the bias; op "coords" with
+    the coordinate channels concatenated first, "upsampled" on the trilinearly upsampled input.
 
-    x (B, X, Y, Z, Ci) -> (B, X, Y, Z, Co).
+    x (B, X, Y, Z, Ci) -> (B, X', Y', Z', Co): X' = X, or 2 X for "upsampled".
     """
-    dims = ("NDHWC", "DHWIO", "NDHWC")
-    y = jax.lax.conv_general_dilated(x, conv.kernel[...], (1, 1, 1), "SAME", dimension_numbers=dims)
-    return y + conv.bias[...]
+    return conv3d_native(x, conv.kernel[...], op) + conv.bias[...]
 
 
 def stem_conv(net: FeatureNet, voxels: jax.Array) -> jax.Array:
@@ -33,13 +34,20 @@ def stem_conv(net: FeatureNet, voxels: jax.Array) -> jax.Array:
 
     voxels (B, G, G, G) -> (B, G, G, G, C/4), as `net.stem.conv(voxels[..., None])`.
     """
-    coords = jnp.broadcast_to(coord_grid(voxels.shape[1]), (*voxels.shape, 3))
-    return conv3d(net.stem.conv, jnp.concatenate([voxels[..., None], coords], axis=-1))
+    return conv3d(net.stem.conv, voxels[..., None], "coords")
+
+
+def stem_and_pool(net: FeatureNet, voxels: jax.Array) -> jax.Array:
+    """The stem (conv5 + GroupNorm + LeakyReLU) on the full grid, then the first strided pool.
+
+    voxels (B, G, G, G) -> (B, G/2, G/2, G/2, C/4), as the first two blocks of `net(voxels)`.
+    """
+    return net.pool1(nnx.leaky_relu(net.stem.norm(stem_conv(net, voxels)), LEAK))
 
 
 def feature_net(net: FeatureNet, voxels: jax.Array) -> jax.Array:
     """f_feat with the plain stem on the full grid, then the first pool on it; the blocks after
-    it are the net's own. As `net(voxels)`."""
+    it are the net's own. voxels (B, G, G, G) -> (B, g, g, g, C), as `net(voxels)`."""
     x = net.res1(stem_and_pool(net, voxels))
     x = x if net.pool2 is None else net.pool2(x)
     return net.res2(net.hourglass(x))
@@ -55,25 +63,18 @@ def decoder_input(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax
     return nnx.leaky_relu(dec.inp(jnp.concatenate([maps, every_frame], axis=-1)), LEAK)
 
 
-def stem_and_pool(net: FeatureNet, voxels: jax.Array) -> jax.Array:
-    """The stem (conv5 + GroupNorm + LeakyReLU) on the full grid, then the first strided pool.
-
-    voxels (B, G, G, G) -> (B, G/2, G/2, G/2, C/4), as the first two blocks of `net(voxels)`.
-    """
-    return net.pool1(nnx.leaky_relu(net.stem.norm(stem_conv(net, voxels)), LEAK))
-
-
 def conv_after_upsampling(block: ConvNormAct, x: jax.Array) -> jax.Array:
     """The trilinear 2x upsampling, then the block's conv, GroupNorm and LeakyReLU on the
     upsampled grid, as an upsampling `block(x)`: x (B, X, Y, Z, Ci) -> (B, 2X, 2Y, 2Z, Co)."""
-    return nnx.leaky_relu(block.norm(conv3d(block.conv, upsample_trilinear(x))), LEAK)
+    return nnx.leaky_relu(block.norm(conv3d(block.conv, x, "upsampled")), LEAK)
 
 
 def decoder(dec: VoxelDecoder, maps: jax.Array, context: jax.Array) -> jax.Array:
     """f_dec with the plain input conv and every convolution after an upsampling on the
     upsampled grid; the blocks are the decoder's own.
 
-    Returns (B, T, G, G, G) raw logits, as `dec(maps, context)`.
+    maps (B, T, g, g, g, K), context (B, g, g, g, C + K + 3) -> (B, T, G, G, G) raw logits, as
+    `dec(maps, context)`.
     """
     b, t = maps.shape[:2]
     x = decoder_input(dec, maps, context)

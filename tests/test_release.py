@@ -549,7 +549,8 @@ def test_point_file_clip_is_the_releases_crop(imported):
     """Frames 0, r, 2r, ... of the file, one bounding box over them, one crop through the
     detector."""
     from nmjax import runs, tasks
-    from nmjax.data.voxelize import normalize_sequence, voxelize
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
 
     root, skel_run, _, _ = imported
     detector = runs.Detector.load(skel_run)

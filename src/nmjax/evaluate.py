@@ -122,7 +122,8 @@ def test_crops(seq, frames: int, sample_rate: int, grid: int, max_crops: int):
       voxels (C, T, G, G, G) and joints (C, T, J, 3) (None when the sequence has none).
     """
     from nmjax.data.datasets import crop_sequence, crop_span
-    from nmjax.data.voxelize import normalize_sequence, voxelize
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
 
     span = crop_span(frames, sample_rate)
     starts = np.arange(0, max(seq.num_frames - span, 0) + 1, span)

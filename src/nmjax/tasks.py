@@ -467,14 +467,6 @@ def sample_mesh_points(mesh, count: int, seed: int = 0) -> np.ndarray:
     return np.asarray(points, np.float32)
 
 
-def normalization_of(points: np.ndarray) -> tuple[np.ndarray, float]:
-    """(bmin (3,), scale) of DESIGN section 4: p' = scale (p - bmin) - 1 for one pose."""
-    points = np.asarray(points, np.float64).reshape(-1, 3)
-    bmin = points.min(axis=0)
-    scale = 2.0 / (float(np.max(points.max(axis=0) - bmin)) + 1e-5)
-    return bmin, scale
-
-
 # --- a motion from a point-sequence file (`--source-file`) -----------------------------------
 
 
@@ -530,7 +522,8 @@ def point_file_keypoints(
     Raises:
       ValueError: the file has fewer than (F - 1) sample_rate + 1 frames.
     """
-    from nmjax.data.voxelize import normalize_sequence, voxelize
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
 
     points = load_point_sequence(path)
     span = (frames - 1) * sample_rate + 1
@@ -902,6 +895,7 @@ def run_retarget(
       the output folder.
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
+    from nmjax.data.normalize import apply_box, normalization_box, undo_box
     from nmjax.skeleton import skin_weights
 
     mesh = load_mesh(target)
@@ -918,12 +912,13 @@ def run_retarget(
     skeleton = runs.read_skeleton(skel_run)
     intensities = runs.skeleton_intensities(skel_run)
 
-    # Target pose in its own normalised frame.
-    bmin, scale = normalization_of(mesh.vertices)
-    cloud = (sample_mesh_points(mesh, points, seed) - bmin) * scale - 1.0
+    # Target pose in its own normalised frame: the box of the mesh's vertices, one frame.
+    bmin, scale = normalization_box(np.asarray(mesh.vertices)[None])
+    bmin, scale = bmin[0, 0], scale[0, 0]  # (3,) and (1,), to broadcast against (..., 3)
+    cloud = apply_box(sample_mesh_points(mesh, points, seed), bmin, scale)
     detector = runs.Detector.load(skel_run)
     target_kp = detect_target_joints(detector, cloud.astype(np.float32))
-    vertices = (np.asarray(mesh.vertices) - bmin) * scale - 1.0
+    vertices = apply_box(mesh.vertices, bmin, scale)
 
     graphdef, state = nnx.split(model)
     key_src, key_tar = jax.random.split(jax.random.key(seed))
@@ -951,7 +946,7 @@ def run_retarget(
     )
 
     def to_mesh(x) -> np.ndarray:  # the normalised frame back to the mesh's units
-        return (np.asarray(x, np.float64) + 1.0) / scale + bmin
+        return undo_box(x, bmin, scale)
 
     moved_mesh = to_mesh(moved)
     faces = np.asarray(mesh.faces)

@@ -717,7 +717,8 @@ class Phase1Viewer(Viewer):
         self.pose.show(keypoints)
         if self.points is not None:
             if self.body_mode.value == "voxels":
-                from nmjax.data.voxelize import voxel_points, voxelize
+                from nmjax.data.voxelize import voxelize
+                from nmjax.metrics import voxel_points
 
                 self.voxels.points = voxel_points(voxelize(self.points[t], self.data.grid))
             else:

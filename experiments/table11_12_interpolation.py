@@ -109,17 +109,15 @@ def keypoints_only(args) -> None:
             nnx.split(runs.restore_dynamics(vrnn)),
             args.trajectories,
         )
-        errors: dict = {}
-        evaluate_interpolation(
+        errors = evaluate_interpolation(
             Detector.load(skel),
             interp,
             runs.load_trajectories(skel, "test") if nm_cfg.inputs == "sequence" else None,
             tuple(args.rates),
             max_segments=args.max_segments,
             voxels=False,
-            keypoint_errors=errors,
             frames=nm_cfg.frames,
-        )
+        )["interpolation_keypoints"]
         sections += [f"## {data}", ""] + interpolation_table(
             errors, "In-between keypoint error (sum over K of squared xyz; 95% CI over sequences)"
         )

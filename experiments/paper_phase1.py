@@ -49,7 +49,6 @@ import phase1_tables
 
 from nmjax import provenance, runs
 from nmjax.config import SkelTrainConfig, skel_preset, with_steps
-from nmjax.data.voxelize import voxel_points
 from nmjax.evaluate import (
     PHASE1_METRICS,
     evaluate_phase1,
@@ -58,6 +57,7 @@ from nmjax.evaluate import (
     skeleton_against_truth,
     true_tree,
 )
+from nmjax.metrics import voxel_points
 from nmjax.runs import Detector
 from nmjax.skeleton import extract_skeleton, prune
 from nmjax.train import common, skel

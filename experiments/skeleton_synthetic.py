@@ -23,8 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import atomic, provenance
+from nmjax.data.normalize import normalize_sequence
 from nmjax.data.synthetic import generate
-from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.data.voxelize import voxelize
 from nmjax.runs import AFFINITY_FILE, FIGURES_DIR, STATS_FILE, extract_run_skeleton
 from nmjax.skeleton import extract_skeleton
 

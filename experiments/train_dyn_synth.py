@@ -28,7 +28,7 @@ import numpy as np
 from nmjax import atomic, provenance, runs, viz
 from nmjax.config import DYN_INPUTS, dyn_preset
 from nmjax.data import bodies, layout, synthetic
-from nmjax.data.voxelize import normalize_sequence
+from nmjax.data.normalize import normalize_sequence
 from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"

@@ -12,6 +12,7 @@ from tiny_runs import PARENTS, make_runs
 
 from nmjax import evaluate, metrics, provenance
 from nmjax.data.voxelize import voxelize
+from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
 
 K = len(PARENTS)
@@ -99,17 +100,12 @@ def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, mon
     interp = Interpolators(nm=None, vrnn=None, trajectories=1)
     for traj, zero in ((linear, True), (curved, False)):
         monkeypatch.setattr(
-            evaluate.runs, "sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
+            "nmjax.runs.sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
         )
-        errors: dict = {}
-        out = evaluate.evaluate_interpolation(
-            detector,
-            interp,
-            {seq.name: traj},
-            rates=(3, 5),
-            methods=("Lerp",),
-            keypoint_errors=errors,
+        tables = evaluate.evaluate_interpolation(
+            detector, interp, {seq.name: traj}, rates=(3, 5), methods=("Lerp",)
         )
+        out, errors = tables["interpolation"], tables["interpolation_keypoints"]
         kp_means = [errors["Lerp"][r]["mean"] for r in ("3", "5")]
         assert kp_means == pytest.approx([0.0, 0.0], abs=1e-9) if zero else min(kp_means) > 1e-3
         assert set(out) == {"Lerp"} and set(out["Lerp"]) == {"3", "5"}
@@ -187,7 +183,7 @@ def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
         assert 0.0 <= p1[key] <= 1.0, key
     assert p1["edge_precision"] <= p1["edge_precision_within_2_hops"]
     # The joint distance is the one of the stored node set, recomputed from the same crops.
-    det = evaluate.Detector.load(run)
+    det = Detector.load(run)
     (name, _, joints, keypoints, _), *rest = evaluate.phase1_outputs(det, max_crops=1)
     assert not rest  # one test sequence
     expected = float(metrics.joint_distance(keypoints, joints, np.array(stored["keep"])))
@@ -403,8 +399,6 @@ def test_generation_refuses_a_baseline_of_another_skeleton_and_bad_horizons(runs
 def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
     """experiments/train_skel_curves.py writes the run's test-split scores under "test"."""
     import shutil
-
-    from nmjax.runs import Detector
 
     run = tmp_path / "skel"
     shutil.copytree(runs["skel"], run)

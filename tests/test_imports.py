@@ -112,3 +112,69 @@ def test_datasets_prepare_and_synthetic_depend_on_layout_not_on_each_other():
     }
     assert imported_modules("nmjax.parents") == set()
     assert imported_modules("nmjax.data.bodies") == set()
+
+
+def package(name: str) -> set[str]:
+    """The modules of package `name` (itself included)."""
+    return {m for m in MODULES if m == name or m.startswith(name + ".")}
+
+
+def imports_from_outside(name: str) -> set[str]:
+    """The nmjax modules that any module of package `name` imports, its own left out."""
+    inside = package(name)
+    return set().union(*(imported_modules(m) for m in inside)) - inside
+
+
+PURE_MATH = {"nmjax.geometry", "nmjax.keypoints", "nmjax.losses"}
+APPLICATIONS = ("nmjax.evaluate", "nmjax.view", "nmjax.tasks")
+
+
+def test_metrics_is_pure_math():
+    outside = imports_from_outside("nmjax.metrics")
+    assert outside <= PURE_MATH, f"nmjax.metrics imports {sorted(outside - PURE_MATH)}"
+
+
+def test_data_imports_neither_metrics_nor_the_applications():
+    above = set().union(*(package(p) for p in ("nmjax.metrics", *APPLICATIONS)))
+    for name in sorted(package("nmjax.data")):
+        assert not imported_modules(name) & above, (
+            f"{name} imports {imported_modules(name) & above}"
+        )
+
+
+def test_tasks_sit_below_evaluate_and_view_which_stay_apart():
+    # CLI -> view / evaluate -> tasks -> runs (DESIGN section 2): a task never reaches up, and
+    # the two applications over the tasks do not lean on each other.
+    for low, high in (
+        ("nmjax.tasks", "nmjax.evaluate"),
+        ("nmjax.tasks", "nmjax.view"),
+        ("nmjax.tasks", "nmjax.cli"),
+        ("nmjax.evaluate", "nmjax.view"),
+        ("nmjax.view", "nmjax.evaluate"),
+        ("nmjax.evaluate", "nmjax.cli"),
+        ("nmjax.view", "nmjax.cli"),
+    ):
+        reached = imports_from_outside(low) & package(high)
+        assert not reached, f"{low} imports {sorted(reached)}"
+    assert "nmjax.runs" in imports_from_outside("nmjax.tasks")
+    assert "nmjax.tasks" in imports_from_outside("nmjax.evaluate")
+
+
+def test_the_application_packages_are_split_by_job_into_short_files():
+    jobs = {
+        "nmjax.evaluate": {"phase1", "phase2", "generation", "tables"},
+        "nmjax.view": {"phase1", "phase2", "exported", "server", "viewer"},
+        "nmjax.tasks": {"generate", "interpolate", "retarget"},
+        "nmjax.metrics": {"sc", "skeleton_measures", "motion", "chamfer"},
+    }
+    for name, modules in jobs.items():
+        assert MODULES[name].name == "__init__.py", f"{name} is not a package"
+        assert {f"{name}.{m}" for m in modules} <= package(name)
+        for module in sorted(package(name)):
+            lines = len(MODULES[module].read_text().splitlines())
+            assert lines <= 700, f"{module} has {lines} lines"
+    # One reader of mesh and point files, one normalisation box.
+    assert "nmjax.data.meshes" in imports_from_outside("nmjax.tasks")
+    assert "nmjax.data.meshes" in imported_modules("nmjax.data.prepare")
+    for name in ("nmjax.runs", "nmjax.data.pipeline", "nmjax.evaluate.phase1"):
+        assert "nmjax.data.normalize" in imported_modules(name), name

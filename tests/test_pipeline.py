@@ -10,7 +10,8 @@ import pytest
 
 from nmjax.config import DataConfig
 from nmjax.data import pipeline
-from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.data.normalize import normalize_sequence
+from nmjax.data.voxelize import voxelize
 
 GRID = 8
 

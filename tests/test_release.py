@@ -588,7 +588,9 @@ def test_point_file_clip_is_the_releases_crop(imported):
     """Frames 0, r, 2r, ... of the file, one bounding box over them, one crop through the
     detector."""
     from nmjax import runs, tasks
-    from nmjax.data.voxelize import normalize_sequence, voxelize
+    from nmjax.data import meshes
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
 
     root, skel_run, _, _ = imported
     detector = runs.Detector.load(skel_run)
@@ -602,7 +604,7 @@ def test_point_file_clip_is_the_releases_crop(imported):
     bad = root / "flat.npy"
     np.save(bad, np.zeros((4, 3)))
     with pytest.raises(ValueError, match=r"shape \(4, 3\)"):
-        tasks.load_point_sequence(bad)
+        meshes.load_point_sequence(bad)
 
 
 def test_import_refuses_an_existing_folder_and_writes_nothing_on_failure(

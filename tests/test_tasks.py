@@ -11,6 +11,7 @@ from tiny_runs import PARENTS, make_runs
 
 from nmjax import geometry, tasks
 from nmjax.config import DynamicsConfig
+from nmjax.data import meshes
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.skeleton import skeleton_from_parents, skin_weights
 
@@ -351,26 +352,26 @@ def test_rest_rotations_turn_an_estimate_onto_the_bones():
 
 def test_bad_meshes_give_errors_that_name_the_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nope.obj"):
-        tasks.load_mesh(tmp_path / "nope.obj")
+        meshes.load_mesh(tmp_path / "nope.obj")
     empty = tmp_path / "empty.obj"
     empty.write_text("# nothing\n")
     with pytest.raises(ValueError, match="empty.obj"):
-        tasks.load_mesh(empty)
+        meshes.load_mesh(empty)
     nan = tmp_path / "nan.obj"
     nan.write_text("v 0 0 0\nv 1 0 0\nv nan 1 0\nf 1 2 3\n")
     with pytest.raises(ValueError, match=r"nan.obj has 1 vertices with NaN"):
-        tasks.load_mesh(nan)
+        meshes.load_mesh(nan)
     cloud = tmp_path / "cloud.obj"
     cloud.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     with pytest.raises(ValueError, match="cloud.obj has no"):
-        tasks.load_mesh(cloud)
+        meshes.load_mesh(cloud)
     garbage = tmp_path / "garbage.ply"
     garbage.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 9\x00\xff")
     with pytest.raises(ValueError, match="garbage.ply"):
-        tasks.load_mesh(garbage)
+        meshes.load_mesh(garbage)
     good = tmp_path / "tri.obj"
     good.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
-    assert len(tasks.load_mesh(good).faces) == 1
+    assert len(meshes.load_mesh(good).faces) == 1
 
 
 # --- the commands on a tiny run ---------------------------------------------------------------

@@ -22,7 +22,8 @@ from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
 from nmjax.config import DynamicsConfig, dyn_preset
 from nmjax.data.datasets import Sequence
-from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.data.normalize import normalize_sequence
+from nmjax.data.voxelize import voxelize
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.train import common, dyn

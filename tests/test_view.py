@@ -152,7 +152,8 @@ def sequence_frames(tiny, split, name):
 
 
 def test_phase1_scene_follows_the_frame_slider(tiny):
-    from nmjax.data.voxelize import voxel_points, voxelize
+    from nmjax.data.voxelize import voxelize
+    from nmjax.metrics import voxel_points
     from nmjax.skeleton import influence
 
     trajectories = runs.load_trajectories(tiny["skel"], "train")

@@ -9,7 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nmjax.data.voxelize import normalize_sequence, voxel_indices, voxel_points, voxelize
+from nmjax.data.normalize import normalize_sequence
+from nmjax.data.voxelize import voxel_indices, voxelize
+from nmjax.metrics import voxel_points
 
 
 def reference_voxelize(points: np.ndarray, grid: int) -> np.ndarray:

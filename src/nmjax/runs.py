@@ -166,7 +166,7 @@ def sequence_points(seq, sample_rate: int) -> tuple[np.ndarray, np.ndarray | Non
     """Points (S, N, 3) and ground-truth joints (S, J, 3) (None without) of every
     `sample_rate`-th frame, normalised with one bounding box over the whole sequence: the frames
     `export_keypoints` detects on, in the keypoints' coordinates."""
-    from nmjax.data.voxelize import normalize_sequence
+    from nmjax.data.normalize import normalize_sequence
 
     joints = None if seq.joints is None else np.asarray(seq.joints[::sample_rate], np.float32)
     return normalize_sequence(np.asarray(seq.vertices[::sample_rate], np.float32), joints)
@@ -273,16 +273,11 @@ def clip_voxels(
       box_frames: how many leading frames the bounding box spans.
     """
     from nmjax.data.datasets import crop_sequence
-    from nmjax.data.voxelize import EPS, normalize_sequence, voxelize
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
 
     points, _ = crop_sequence(seq, frames, data.sample_rate, start)
-    if box_frames is None or box_frames >= frames:
-        points, _ = normalize_sequence(points)
-    else:  # normalize_sequence's map with the box of the first frames only
-        box = np.asarray(points[:box_frames], np.float64).reshape(-1, 3)
-        bmin = box.min(axis=0)
-        scale = 2.0 / (float(np.max(box.max(axis=0) - bmin)) + EPS)
-        points = ((np.asarray(points, np.float64) - bmin) * scale - 1.0).astype(np.float32)
+    points, _ = normalize_sequence(points, box_frames=box_frames)
     return voxelize(points, data.grid)
 
 

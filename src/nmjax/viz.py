@@ -24,7 +24,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from nmjax import atomic  # noqa: E402
-from nmjax.data.voxelize import voxel_points  # noqa: E402
+from nmjax.metrics import voxel_points  # noqa: E402
 
 if TYPE_CHECKING:
     from nmjax.skeleton import Skeleton

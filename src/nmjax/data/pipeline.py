@@ -36,7 +36,8 @@ from nmjax.data.datasets import (
     load_sequences,
     sample_start,
 )
-from nmjax.data.voxelize import normalize_sequence, voxelize
+from nmjax.data.normalize import normalize_sequence
+from nmjax.data.voxelize import voxelize
 
 __all__ = [
     "Augmentation",

@@ -36,15 +36,9 @@ import numpy as np
 
 from nmjax.data import aist, body_models, dfaust, dt4d, hanco
 from nmjax.data.layout import read_meta_file
-from nmjax.data.streaming import (
-    SourceSequence,
-    Summary,
-    sample_surface,
-    select_sequences,
-    write_sequences,
-)
+from nmjax.data.meshes import MESH_SUFFIXES, read_joints, read_mesh, sample_surface
+from nmjax.data.streaming import SourceSequence, Summary, select_sequences, write_sequences
 
-MESH_SUFFIXES = (".obj", ".ply", ".off")
 DEFAULT_POINTS = 20_000
 
 DT4D_DATASETS = ("animals", "dt4d-humanoids")
@@ -125,25 +119,8 @@ def find_sequences(source: Path) -> dict[str, list[Path]]:
 
 def sample_frame(path: Path, points: int, seed: int) -> np.ndarray:
     """(points, 3) float32 points sampled area-uniformly on the surface of the mesh at `path`."""
-    import trimesh  # lazy: keeps `nmjax --help` fast
-
-    try:
-        mesh = trimesh.load(path, force="mesh", process=False)
-    except Exception as err:  # trimesh raises many types for malformed files
-        raise ValueError(f"{path}: cannot read the mesh ({err})") from err
+    mesh = read_mesh(path)
     return sample_surface(mesh.vertices, mesh.faces, points, seed, str(path))
-
-
-def _read_raw_joints(path: Path, num_frames: int) -> np.ndarray:
-    joints = np.load(path, allow_pickle=False)
-    if joints.ndim != 3 or joints.shape[-1] != 3 or joints.shape[0] != num_frames:
-        raise ValueError(
-            f"{path}: joints must have shape (T, J, 3) with T = {num_frames} mesh frames, "
-            f"got {joints.shape}"
-        )
-    if not np.isfinite(joints).all():
-        raise ValueError(f"{path}: joints contain NaN or inf")
-    return joints.astype(np.float32)
 
 
 def mesh_sequences(source: Path) -> list[SourceSequence]:
@@ -156,7 +133,7 @@ def mesh_sequences(source: Path) -> list[SourceSequence]:
             vertices = np.stack([sample_frame(path, points, int(s)) for path, s in frames])
             raw_joints, joints = source / seq / "joints.npy", None
             if raw_joints.is_file():
-                joints = _read_raw_joints(raw_joints, len(paths))[: len(seeds)]
+                joints = read_joints(raw_joints, len(paths))[: len(seeds)]
             return {"joints": joints, "vertices": vertices}
 
         listed.append(SourceSequence(seq, len(paths), read))

@@ -10,9 +10,10 @@ changed), so that an interrupted preparation of a large download continues where
 `<root>/preparing.json` records the settings of an unfinished preparation, and a rerun with other
 settings is refused (`--overwrite` starts again). `split.json` and `meta.json` come last.
 
-Surface points: `sample_surface` samples one frame area-uniformly (trimesh) with a seed from
-`sequence_seeds`, which depends on the sequence's name and frame only, so that preparing a part
-of a set (`--sequences`, `--frames`, `--subjects`) gives the same bytes as preparing all of it.
+Surface points: `nmjax.data.meshes.sample_surface` samples one frame area-uniformly (trimesh)
+with a seed from `sequence_seeds`, which depends on the sequence's name and frame only, so that
+preparing a part of a set (`--sequences`, `--frames`, `--subjects`) gives the same bytes as
+preparing all of it.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import numpy as np
 from nmjax import atomic
 from nmjax.config import DATASETS
 from nmjax.data import layout, splits
+from nmjax.data.meshes import sample_surface
 
 ReadArrays = Callable[[int, np.ndarray], dict[str, np.ndarray | None]]
 
@@ -94,26 +96,6 @@ def sequence_seeds(seed: int, name: str, num_frames: int) -> np.ndarray:
     """
     key = int.from_bytes(hashlib.sha256(name.encode()).digest()[:8], "little")
     return np.random.SeedSequence([seed, key]).generate_state(num_frames)
-
-
-def sample_surface(
-    vertices: np.ndarray, faces: np.ndarray, points: int, seed: int, where: str
-) -> np.ndarray:
-    """(points, 3) float32 points area-uniform on the triangles `faces` of `vertices` (V, 3).
-
-    Raises:
-      ValueError naming `where`: no face of positive area, or NaN / inf vertices.
-    """
-    import trimesh  # lazy: keeps `nmjax --help` fast
-
-    mesh = trimesh.Trimesh(vertices=vertices, faces=faces, process=False)
-    if len(mesh.faces) == 0 or not mesh.area > 0:
-        raise ValueError(f"{where}: mesh has no surface (faces: {len(mesh.faces)}) to sample from")
-    sampled, _ = trimesh.sample.sample_surface(mesh, points, seed=seed)
-    sampled = np.asarray(sampled, dtype=np.float32)
-    if not np.isfinite(sampled).all():
-        raise ValueError(f"{where}: mesh vertices contain NaN or inf")
-    return sampled
 
 
 def sample_mesh_sequence(

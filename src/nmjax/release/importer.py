@@ -133,7 +133,7 @@ def import_release(
     from tqdm import tqdm
 
     from nmjax import provenance, runs
-    from nmjax.tasks import load_point_sequence
+    from nmjax.data.meshes import load_point_sequence
     from nmjax.train import dyn, skel
 
     run = check_run_folder(run, overwrite)

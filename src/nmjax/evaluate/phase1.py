@@ -1,0 +1,236 @@
+"""Phase-1 evaluation on the test split: SC-score (Eq. 21, Table 1) in both definitions, 4D-tracking
+Chamfer x1e4 (Table 2), bone-length variation of the pruned skeleton and the skeleton against the
+ground truth, on test crops of T frames each normalised on its own, as in training.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from nmjax import metrics, runs
+from nmjax.evaluate.stats import summarize
+from nmjax.evaluate.tables import SKELETON_TRUTH_COLUMNS
+from nmjax.runs import Detector
+
+# One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
+# One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
+PHASE1_METRICS = {
+    "sc": "SC-score, Eq. 21 as published: in each frame keypoints with alpha < 0.2 are no "
+    "candidates for a joint's nearest keypoint; counts over all test frames (Table 1)",
+    "sc_fixed_nodes": "Eq. 21 over the fixed node set of the pruned skeleton in every frame",
+    "tracking": "4D-tracking Chamfer x1e4 (Table 2): reconstruction thresholded at 0.5 against "
+    "the crop's voxels, mean per sequence; mean and 95% CI over test sequences",
+    "bone_length_variation": "std / mean of each bone's length of the pruned skeleton over a "
+    "crop of T frames, mean over bones and crops",
+    "joint_distance": "mean distance from a ground-truth joint to its nearest kept node (cube "
+    "[-1, 1]^3), mean over joints and frames per sequence; mean and 95% CI over sequences",
+    "joint_coverage_0.05, joint_coverage_0.10": "share of joint-frames with a kept node within "
+    "0.05 (0.10)",
+    "edge_precision": "share of skeleton edges whose nodes' joints are the same or adjacent in "
+    f"the true tree (edge_precision_within_{metrics.TWO_HOPS}_hops: within two hops)",
+    "bone_recall": "share of true bones whose joints' nodes are the same or adjacent in the "
+    "skeleton",
+    "distinct_nodes": "kept nodes that are some joint's most frequent nearest kept node",
+}
+
+
+def test_crops(seq, frames: int, sample_rate: int, grid: int, max_crops: int):
+    """Non-overlapping crops of one sequence, each normalised and voxelised like training crops.
+
+    Returns:
+      voxels (C, T, G, G, G) and joints (C, T, J, 3) (None when the sequence has none).
+    """
+    from nmjax.data.datasets import crop_sequence, crop_span
+    from nmjax.data.normalize import normalize_sequence
+    from nmjax.data.voxelize import voxelize
+
+    span = crop_span(frames, sample_rate)
+    starts = np.arange(0, max(seq.num_frames - span, 0) + 1, span)
+    if len(starts) > max_crops:
+        starts = starts[np.linspace(0, len(starts) - 1, max_crops).astype(int)]
+    voxels, joints = [], []
+    for start in starts:
+        points, gt = crop_sequence(seq, frames, sample_rate, int(start))
+        points, gt = normalize_sequence(points, gt)
+        voxels.append(voxelize(points, grid))
+        joints.append(gt)
+    has_joints = all(j is not None for j in joints)
+    return np.stack(voxels), (np.stack(joints) if has_joints else None)
+
+
+def phase1_outputs(detector: Detector, max_crops: int = 8, split: str = "test"):
+    """The detector on the crops of `test_crops`, one sequence of `split` at a time.
+
+    Yields:
+      (sequence name, voxels (C, T, G, G, G), joints (C, T, J, 3) or None, keypoints
+      (C, T, K, 4), reconstructions (C, T, G, G, G)).
+    """
+    from nmjax.data.datasets import load_sequences
+
+    cfg = detector.cfg
+    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
+        voxels, joints = test_crops(
+            seq, cfg.data.frames, cfg.data.sample_rate, cfg.data.grid, max_crops
+        )
+        keypoints, recon = detector.run_batches(voxels)
+        yield seq.name, voxels, joints, keypoints, recon
+
+
+def true_tree(detector: Detector, num_joints: int) -> np.ndarray | None:
+    """The ground-truth kinematic tree of the detector's dataset: the `parents` of its meta.json
+    (read by `layout.read_meta`, which takes the root in any convention and returns it as its own
+    parent), or None when the dataset does not record them.
+
+    Raises:
+      ValueError: the recorded parents are not a tree over the `num_joints` joints.
+    """
+    from nmjax.data.layout import dataset_root, read_meta
+
+    data = detector.cfg.data
+    parents = read_meta(data.name, data.root).get("parents")
+    if parents is None:
+        return None
+    if len(parents) != num_joints:
+        raise ValueError(
+            f"{dataset_root(data.name, data.root) / 'meta.json'}: `parents` names {len(parents)} "
+            f"joints but the joint files hold {num_joints}; regenerate or re-prepare the dataset"
+        )
+    return np.asarray(parents)
+
+
+def skeleton_against_truth(
+    keypoints: list[np.ndarray],
+    joints: list[np.ndarray],
+    skeleton: tuple[np.ndarray, np.ndarray],
+    true_parents: np.ndarray | None,
+    names: list[str],
+) -> dict[str, Any]:
+    """The skeleton measures of `metrics.skeleton_agreement` over every test frame, named as
+    results.json names them.
+
+    The joint distance is the mean over test sequences of each sequence's mean over its joints
+    and frames (sequences weigh alike, as in the tracking Chamfer), with the 95% CI over
+    sequences; the other measures pool all the frames (a node's joint and a joint's node are the
+    most frequent over the whole test split).
+
+    Args:
+      keypoints: per sequence, (C, T, K, 4) keypoints of its crops.
+      joints: per sequence, (C, T, J, 3) ground-truth joints of the same crops.
+      skeleton: (pruned parents (K,), kept nodes (K,) bool), `runs.pruned_skeleton`.
+      true_parents: (J,) the true tree, or None (edge precision and bone recall left out).
+      names: the sequence names.
+
+    Returns:
+      {"joint_distance": {"mean", "ci95", "n", "per_sequence"}, "joint_coverage_0.05",
+       "joint_coverage_0.10", "edge_precision", "edge_precision_within_2_hops", "bone_recall"
+       (the last three only with `true_parents`), "distinct_nodes", "skeleton_kept_nodes"}.
+    """
+    parents, kept = skeleton
+    per_seq = {
+        name: float(metrics.joint_distance(kp, gt, kept))
+        for name, kp, gt in zip(names, keypoints, joints, strict=True)
+    }
+    flat_kp = np.concatenate([kp.reshape(-1, *kp.shape[-2:]) for kp in keypoints])
+    flat_gt = np.concatenate([gt.reshape(-1, *gt.shape[-2:]) for gt in joints])
+    scores = metrics.skeleton_agreement(flat_kp, flat_gt, kept, parents, true_parents)
+    scores["joint_distance"] = {**summarize(list(per_seq.values())), "per_sequence": per_seq}
+    scores["skeleton_kept_nodes"] = int(kept.sum())
+    return scores
+
+
+def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test") -> dict:
+    """SC-score (Table 1), 4D-tracking Chamfer x1e4 (Table 2), bone-length variation and the
+    skeleton against the ground truth on `split`.
+
+    SC is reported in both definitions (`metrics.SC_NODES`): "sc" is the published one
+    (per-frame candidates with alpha >= 0.2), "sc_fixed_nodes" the fixed node set of the pruned
+    skeleton. The bone-length variation (`metrics.bone_length_variation`) and the skeleton
+    measures (`skeleton_against_truth`) take the pruned tree and kept nodes stored in the run's
+    skeleton.json (`runs.pruned_skeleton`): the bones between kept nodes over the same crops
+    (each crop one sequence of T frames), absent when the run has no skeleton yet; the skeleton
+    against the true tree of the dataset's meta.json (`true_tree`), absent without ground-truth
+    joints or a skeleton.
+
+    Returns:
+      {"sc": {"score", "std_over_joints", "per_sequence"}, "sc_fixed_nodes": {same} (both absent
+       without ground-truth joints), "tracking": {"mean", "ci95", "n", "per_sequence"},
+       "bone_length_variation": {"mean", "kept_nodes", "per_sequence"}, and the keys of
+       `skeleton_against_truth`}.
+    """
+    sc = metrics.SemanticConsistency()
+    per_seq_sc: dict[str, dict[str, float]] = {"per_frame": {}, "fixed": {}}
+    per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
+    truth: dict[str, list] = {"names": [], "keypoints": [], "joints": []}
+    skeleton = runs.pruned_skeleton(detector.run)
+    for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
+        per_seq_cd[name] = float(
+            np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
+        )
+        if joints is not None:
+            sc.update(keypoints, joints)
+            for nodes in metrics.SC_NODES:
+                per_seq_sc[nodes][name] = metrics.semantic_consistency(
+                    keypoints, joints, nodes=nodes
+                )
+            for key, value in (("names", name), ("keypoints", keypoints), ("joints", joints)):
+                truth[key].append(value)
+        if skeleton is not None:
+            parents, kept = skeleton
+            per_seq_bones[name] = float(
+                metrics.bone_length_variation(keypoints, parents, kept=kept)
+            )
+            all_keypoints.append(keypoints)
+    out: dict[str, Any] = {
+        "tracking": {**summarize(list(per_seq_cd.values())), "per_sequence": per_seq_cd}
+    }
+    if sc.frames > 0:
+        for key, nodes in (("sc", "per_frame"), ("sc_fixed_nodes", "fixed")):
+            out[key] = {
+                "score": sc.result(nodes),
+                "std_over_joints": float(np.std(sc.per_joint(nodes))),
+                "per_sequence": per_seq_sc[nodes],
+            }
+    if skeleton is not None and all_keypoints:
+        parents, kept = skeleton
+        out["bone_length_variation"] = {
+            "mean": float(
+                metrics.bone_length_variation(np.concatenate(all_keypoints), parents, kept=kept)
+            ),
+            "kept_nodes": int(kept.sum()),
+            "per_sequence": per_seq_bones,
+        }
+    if skeleton is not None and truth["names"]:
+        true_parents = true_tree(detector, truth["joints"][0].shape[-2])
+        out.update(
+            skeleton_against_truth(
+                truth["keypoints"], truth["joints"], skeleton, true_parents, truth["names"]
+            )
+        )
+    return out
+
+
+def phase1_scores(results: dict) -> dict[str, float]:
+    """The headline numbers of `evaluate_phase1`'s results, flat: "tracking_cd" and
+    "tracking_cd_ci95"; "sc", "sc_fixed_nodes" and each one's "_std_over_joints" (with
+    ground-truth joints); "bone_length_variation" (with a skeleton); "joint_distance" and
+    "joint_distance_ci95" and the other skeleton measures (`SKELETON_TRUTH_COLUMNS`) with
+    "skeleton_kept_nodes" (with joints and a skeleton)."""
+    scores = {
+        "tracking_cd": results["tracking"]["mean"],
+        "tracking_cd_ci95": results["tracking"]["ci95"],
+    }
+    for key in ("sc", "sc_fixed_nodes"):
+        if key in results:
+            scores[key] = results[key]["score"]
+            scores[f"{key}_std_over_joints"] = results[key]["std_over_joints"]
+    if "bone_length_variation" in results:
+        scores["bone_length_variation"] = results["bone_length_variation"]["mean"]
+    if "joint_distance" in results:
+        scores["joint_distance"] = results["joint_distance"]["mean"]
+        scores["joint_distance_ci95"] = results["joint_distance"]["ci95"]
+    for key in [k for k, _ in SKELETON_TRUTH_COLUMNS[1:]] + ["skeleton_kept_nodes"]:
+        if key in results:
+            scores[key] = results[key]
+    return scores

@@ -1,0 +1,85 @@
+"""What the learned model is for (paper Sec. 5, appendix A.4 and D.4; DESIGN section 9).
+
+- `generate`: motion generation, `generate_motion`; `nmjax generate` (`run_generate`).
+- `interpolate`: motion interpolation between keyframes, `interpolate_motion`, and the baselines
+  Lerp and Slerp; `nmjax interpolate` (`run_interpolate`); `Interpolators` runs every method.
+- `retarget`: motion retargeting (Eqs. 24-25) onto a target mesh, `retarget_mesh`;
+  `nmjax retarget` (`run_retarget`) and the reader of its output folder (`read_retarget`).
+- `inputs`: the clips the commands run on (test sequences as the phase-2 run was fed, or a
+  point-sequence file) and the rig arrays written beside every motion.
+
+The array functions are pure and jit-able; sampling is vmapped over trajectories; the
+`*_jit` entry points take a model split once (`nnx.split`, graphdef static). The mesh and
+point-file readers are `nmjax.data.meshes`. Every public name is importable from `nmjax.tasks`.
+"""
+
+from nmjax.tasks.generate import generate_jit, generate_motion, generation_clips, run_generate
+from nmjax.tasks.inputs import (
+    TaskClips,
+    pick_inputs,
+    point_file_keypoints,
+    rig_arrays,
+    source_file_clip,
+)
+from nmjax.tasks.interpolate import (
+    Interpolators,
+    interpolate_jit,
+    interpolate_motion,
+    interpolation_clips,
+    interpolation_weights,
+    lerp_keypoints,
+    run_interpolate,
+    slerp_jit,
+    slerp_keypoints,
+)
+from nmjax.tasks.retarget import (
+    RETARGET_FILE,
+    RETARGET_FRAME,
+    align_rotation,
+    detect_target_joints,
+    infer_rotations,
+    infer_rotations_jit,
+    read_retarget,
+    rest_rotations,
+    retarget_joints,
+    retarget_mesh,
+    retarget_pose,
+    retarget_vertices,
+    run_retarget,
+    write_obj,
+)
+
+__all__ = [
+    "RETARGET_FILE",
+    "RETARGET_FRAME",
+    "Interpolators",
+    "TaskClips",
+    "align_rotation",
+    "detect_target_joints",
+    "generate_jit",
+    "generate_motion",
+    "generation_clips",
+    "infer_rotations",
+    "infer_rotations_jit",
+    "interpolate_jit",
+    "interpolate_motion",
+    "interpolation_clips",
+    "interpolation_weights",
+    "lerp_keypoints",
+    "pick_inputs",
+    "point_file_keypoints",
+    "read_retarget",
+    "rest_rotations",
+    "retarget_joints",
+    "retarget_mesh",
+    "retarget_pose",
+    "retarget_vertices",
+    "rig_arrays",
+    "run_generate",
+    "run_interpolate",
+    "run_retarget",
+    "slerp_jit",
+    "slerp_keypoints",
+    "source_file_clip",
+    "write_obj",
+]

@@ -14,11 +14,10 @@ import sys
 import time
 from pathlib import Path
 
-from nmjax import atomic, runs
-from nmjax.config import SkelTrainConfig, dyn_preset
+from nmjax import atomic, run_folder, runs
+from nmjax.config import SkelTrainConfig, dyn_preset, replace_fields
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
-from nmjax.train import common
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "exp"
@@ -53,7 +52,7 @@ def dyn_run(data: str, model: str, skel: Path, steps: int) -> Path:
     run = RUNS / f"dyn-{data}-{model}"
     if not _done(run, steps):
         cfg = dyn_preset(data, "cpu")
-        cfg = dataclasses.replace(
+        cfg = replace_fields(
             cfg,
             skel_run=str(skel),
             run=str(run),
@@ -78,7 +77,7 @@ def training_note(runs: dict[str, Path]) -> str:
     """Markdown lines saying how far each run was trained."""
     lines = []
     for label, run in runs.items():
-        cfg = json.loads((run / common.CONFIG_FILE).read_text())
+        cfg = json.loads((run / run_folder.CONFIG_FILE).read_text())
         info_file = run / "experiment.json"  # a phase-2 run's; a phase-1 row's run has none
         info = json.loads(info_file.read_text()) if info_file.is_file() else {"steps": cfg["steps"]}
         size = ""

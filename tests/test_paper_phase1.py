@@ -31,7 +31,7 @@ def _head() -> str | None:
 
 
 def test_a_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver):
-    from nmjax.train import common
+    from nmjax.config import config_to_dict
 
     if _head() is None or not driver.descends_from(_head()):
         pytest.skip("needs this repository's git history (a clone with PHASE1_SINCE in it)")
@@ -39,7 +39,7 @@ def test_a_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(drive
     cfg = driver.row_config(key)
     assert (cfg.seed, cfg.data.seed, cfg.run) == (1, 1, "runs/exp/skel-synth-arm-s1-preset")
     stamp = {"commit": _head(), "dirty": False, "metrics": driver.METRICS}
-    row = {**dataclasses.asdict(key), "config": common.config_to_dict(cfg), "provenance": stamp}
+    row = {**dataclasses.asdict(key), "config": config_to_dict(cfg), "provenance": stamp}
     assert driver.same_computation(row, cfg)
     moved = {**row, "config": {**row["config"], "run": "elsewhere"}}  # the folder is no change
     assert driver.same_computation(moved, cfg)

@@ -374,7 +374,13 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
       ValueError: an option that selects a network nmjax does not implement, a missing option,
         or a dataset nmjax does not know.
     """
-    from nmjax.config import DynamicsConfig, dataset_spec, dyn_preset, skel_preset
+    from nmjax.config import (
+        DynamicsConfig,
+        dataset_spec,
+        dyn_preset,
+        replace_fields,
+        skel_preset,
+    )
 
     for name, value in SUPPORTED_OPTIONS.items():
         if _option(options, name) != value:
@@ -417,7 +423,7 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
     )
     seed = int(_option(options, "seed"))
     learning_rate = float(_option(options, "lrate"))
-    skel = dataclasses.replace(
+    skel = replace_fields(
         skel,
         data=data,
         model=model,
@@ -426,7 +432,7 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         seed=seed,
         run=str(run / "skel"),
     )
-    dyn = dataclasses.replace(
+    dyn = replace_fields(
         dyn_preset(dataset, "default"),
         skel_run=str(run / "skel"),
         model=DynamicsConfig(
@@ -822,11 +828,14 @@ def write_phase1_artifacts(run: Path, detector: Any, keypoints: np.ndarray, voxe
 def _save_run(folder: Path, cfg: Any, model: Any, optimizer: Any) -> None:
     """config.json and the model with a fresh optimizer state as checkpoint 0 (the imported
     parameters before any nmjax step), in the layout the trainers restore."""
-    from nmjax.train import common
+    from nmjax import run_folder
+    from nmjax.train import checkpoints, optim
 
-    common.prepare_run_dir(folder, resume=False, config=cfg)
-    _, state = common.init_state(model, optimizer)
-    with common.Checkpointer(folder / common.CHECKPOINTS, cfg.keep_checkpoints) as ckpt:
+    run_folder.prepare_run_dir(folder, resume=False, config=cfg)
+    _, state = optim.init_state(model, optimizer)
+    with checkpoints.Checkpointer(
+        run_folder.checkpoint_dir(folder), cfg.loop.keep_checkpoints
+    ) as ckpt:
         ckpt.save(0, state)
 
 

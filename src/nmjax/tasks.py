@@ -33,8 +33,8 @@ from flax import nnx
 
 from nmjax import atomic, geometry, runs
 from nmjax.config import DynTrainConfig
+from nmjax.data.datasets import pad_with_last
 from nmjax.models.dynamics import Dynamics, bone_lengths
-from nmjax.train import common
 
 # --- generation -----------------------------------------------------------------------------
 
@@ -582,7 +582,7 @@ def pick_inputs(
     if missing:
         raise ValueError(f"no test sequence named {missing}; available: {sorted(trajectories)}")
     chosen = chosen[:count]
-    crops = [common.pad_with_last(trajectories[name][:frames], frames) for name in chosen]
+    crops = [pad_with_last(trajectories[name][:frames], frames) for name in chosen]
     return chosen, np.stack(crops).astype(np.float32)
 
 

@@ -214,14 +214,13 @@ def read_phase1(run: str | Path, split: str = "test") -> Phase1Data:
       FileNotFoundError: no skeleton.json or keypoints_<split>.npz yet (names the command).
       ValueError: damaged run files.
     """
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.config import SkelTrainConfig
     from nmjax.data import datasets, layout
     from nmjax.skeleton import influence
-    from nmjax.train import common
 
     run = Path(run)
-    cfg = common.load_config(run, SkelTrainConfig)
+    cfg = run_folder.load_config(run, SkelTrainConfig)
     keypoints = runs.load_trajectories(run, split)
     skeleton = runs.read_skeleton(run)
     parents, keep = runs.pruned_skeleton(run)
@@ -342,12 +341,11 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
     """
     from flax import nnx
 
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.config import DynTrainConfig, SkelTrainConfig
-    from nmjax.train import common
 
     run = Path(run)
-    model_kind = common.load_config(run, DynTrainConfig).model.model
+    model_kind = run_folder.load_config(run, DynTrainConfig).model.model
     if model_kind != "nm":
         raise ValueError(
             f"--run {run} is a '{model_kind}' run; view the Neural Marionette ('nm') run of the "
@@ -368,7 +366,7 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
         root=skeleton.root,
         model=nnx.split(model),
         vrnn=vrnn,
-        up_axis=common.load_config(skel_run, SkelTrainConfig).data.up_axis,
+        up_axis=run_folder.load_config(skel_run, SkelTrainConfig).data.up_axis,
     )
 
 
@@ -382,8 +380,7 @@ def folder_kind(folder: str | Path) -> str:
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
     """
-    from nmjax import runs, tasks
-    from nmjax.train import common
+    from nmjax import run_folder, runs, tasks
 
     folder = Path(folder)
     if folder.is_file() and folder.suffix.lower() in GLTF_SUFFIXES:
@@ -394,12 +391,12 @@ def folder_kind(folder: str | Path) -> str:
             "`nmjax train-dyn`, an output folder of `nmjax retarget`, or a .glb / .gltf file "
             "of `nmjax export`"
         )
-    if (folder / common.CONFIG_FILE).is_file():
+    if (folder / run_folder.CONFIG_FILE).is_file():
         return runs.run_kind(folder)
     if (folder / tasks.RETARGET_FILE).is_file():
         return "retarget"
     raise FileNotFoundError(
-        f"--run {folder} holds neither {common.CONFIG_FILE} (a run folder) nor "
+        f"--run {folder} holds neither {run_folder.CONFIG_FILE} (a run folder) nor "
         f"{tasks.RETARGET_FILE} (an `nmjax retarget` output); is it an unfinished run?"
     )
 

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 from nmjax import atomic, run_folder, runs
-from nmjax.config import SkelTrainConfig, dyn_preset, replace_fields
+from nmjax.config import DynTrainConfig, SkelTrainConfig, dyn_preset, replace_fields
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
 
@@ -79,7 +79,9 @@ def training_note(runs: dict[str, Path]) -> str:
     for label, run in runs.items():
         cfg = json.loads((run / run_folder.CONFIG_FILE).read_text())
         info_file = run / "experiment.json"  # a phase-2 run's; a phase-1 row's run has none
-        info = json.loads(info_file.read_text()) if info_file.is_file() else {"steps": cfg["steps"]}
+        kind = SkelTrainConfig if run_folder.run_kind(run) == "skel" else DynTrainConfig
+        steps = run_folder.load_config(run, kind).loop.steps  # either config.json layout
+        info = json.loads(info_file.read_text()) if info_file.is_file() else {"steps": steps}
         size = ""
         if "data" in cfg and isinstance(cfg["data"], dict):
             size = (

@@ -101,7 +101,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     # Adam restarted at the epoch boundaries (2 training sequences at B = 1: steps 2 and 4), so
     # the resumed run crossed one (step 4) after it resumed at step 3, and matched regardless.
     saved = json.loads((tmp_path / "resumed" / "config.json").read_text())
-    assert saved["optimizer_reset"] == "epoch" and saved["steps_per_epoch"] == 2
+    assert saved["optim"]["optimizer_reset"] == "epoch" and saved["loop"]["steps_per_epoch"] == 2
 
     run = tmp_path / "straight"
     k, n, g = cfg.model.num_keypoints, cfg.model.num_affinity, cfg.model.grid
@@ -121,7 +121,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert list((run / "figures").glob("keypoints_*.png"))
     assert list((run / "tb").iterdir())
     saved = json.loads((run / "config.json").read_text())
-    assert saved["model"]["channels"] == 4 and saved["steps"] == 6
+    assert saved["model"]["channels"] == 4 and saved["loop"]["steps"] == 6
     for split, count in (("train", 2), ("test", 1)):
         with np.load(run / f"keypoints_{split}.npz") as archive:
             assert len(archive.files) == count
@@ -188,7 +188,7 @@ def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
         skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
-    assert run_folder.checkpoint_steps(tmp_path / "run" / "checkpoints") == [2]
+    assert run_folder.checkpoint_steps(tmp_path / "run") == [2]
     assert not (tmp_path / "run" / run_folder.METRICS_FILE).exists()  # nothing logged before 4
 
 
@@ -343,8 +343,8 @@ def test_fit_minutes_times_the_step_and_trains_the_fitted_schedule(
     assert nmjax_main([*argv, "--fit-minutes", "22"]) == 0
     # 1,320 s / (100 s x 1.08) = 12.2 steps; the milestones 10 and 15 of 20 scale with them.
     saved = json.loads((run / "config.json").read_text())
-    assert (saved["steps"], tuple(saved["lr_milestones"])) == (12, (6, 9))
-    assert 21.5 < saved["time_limit_minutes"] <= 22.0
+    assert (saved["loop"]["steps"], tuple(saved["optim"]["lr_milestones"])) == (12, (6, 9))
+    assert 21.5 < saved["loop"]["time_limit_minutes"] <= 22.0
     assert len(timed) == 1 and timed[0].loop.steps == 20 and timed[0].model.grid == 8
     assert "12 steps" in capsys.readouterr().err
     assert (run / "checkpoints" / "12").exists()

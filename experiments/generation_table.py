@@ -23,9 +23,9 @@ from pathlib import Path
 import exp_common as ec
 import phase2_tables
 
-from nmjax import atomic, provenance, viz
+from nmjax import atomic, provenance, run_folder, viz
 from nmjax.cli import main as nmjax_main
-from nmjax.config import DynTrainConfig, dyn_preset
+from nmjax.config import DynTrainConfig, dyn_preset, replace_fields
 from nmjax.evaluate import (
     GEN_HORIZONS,
     GENERATION_METRICS,
@@ -33,7 +33,6 @@ from nmjax.evaluate import (
     evaluate_generation_run,
     generation_markdown,
 )
-from nmjax.train import common
 
 EXPERIMENT_FILE = "experiment.json"  # {"steps", "seconds"}: written once the training finished
 
@@ -41,7 +40,7 @@ EXPERIMENT_FILE = "experiment.json"  # {"steps", "seconds"}: written once the tr
 def dyn_config(data: str, model: str, skel: Path, steps: int, preset: str, run: Path):
     """The configuration `nmjax train-dyn --preset PRESET --steps STEPS` trains."""
     cfg = dyn_preset(data, preset)
-    return dataclasses.replace(
+    return replace_fields(
         cfg,
         skel_run=str(skel),
         run=str(run),
@@ -56,7 +55,7 @@ def phase2_run(data: str, model: str, skel: Path, steps: int, preset: str, runs:
     expected = dyn_config(data, model, skel, steps, preset, run)
     info = run / EXPERIMENT_FILE
     if info.is_file() and json.loads(info.read_text()).get("steps") == steps:
-        if common.load_config(run, DynTrainConfig) == expected:
+        if run_folder.load_config(run, DynTrainConfig) == expected:
             return run
     if run.exists():
         raise SystemExit(
@@ -73,13 +72,13 @@ def phase2_run(data: str, model: str, skel: Path, steps: int, preset: str, runs:
 
 def run_note(label: str, run: Path) -> str:
     """One markdown line: the run folder, its steps and (when this script trained it) time."""
-    cfg = common.load_config(run, DynTrainConfig)
+    cfg = run_folder.load_config(run, DynTrainConfig)
     size = f"D_z={cfg.model.latent}, D_h={cfg.model.hidden}, kl_weight {cfg.kl_weight}"
     info = run / EXPERIMENT_FILE
     took = ""
     if info.is_file():
         took = f", {json.loads(info.read_text())['seconds'] / 60:.1f} min on the shared CPU"
-    return f"- {label}: `{run}`, {cfg.steps} steps ({size}{took})"
+    return f"- {label}: `{run}`, {cfg.loop.steps} steps ({size}{took})"
 
 
 def main() -> None:

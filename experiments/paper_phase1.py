@@ -47,8 +47,8 @@ import exp_common as ec
 import numpy as np
 import phase1_tables
 
-from nmjax import provenance, runs
-from nmjax.config import SkelTrainConfig, skel_preset, with_steps
+from nmjax import provenance, run_folder, runs
+from nmjax.config import SkelTrainConfig, config_from_dict, config_to_dict, skel_preset, with_steps
 from nmjax.evaluate import (
     PHASE1_METRICS,
     evaluate_phase1,
@@ -60,7 +60,7 @@ from nmjax.evaluate import (
 from nmjax.metrics import voxel_points
 from nmjax.runs import Detector
 from nmjax.skeleton import extract_skeleton, prune
-from nmjax.train import common, skel
+from nmjax.train import skel
 
 BODIES, COMPARISON_BODIES = phase1_tables.BODIES, phase1_tables.COMPARISON_BODIES
 VARIANTS = {
@@ -111,7 +111,7 @@ def row_config(key: RowKey, steps: int | None = None) -> SkelTrainConfig:
         cfg,
         seed=key.seed,
         data=dataclasses.replace(cfg.data, seed=key.seed),
-        run=str(run_folder(key)),
+        run=str(row_run_dir(key)),
     )
     if steps is not None:
         cfg = with_steps(cfg, steps)
@@ -128,7 +128,7 @@ def row_config(key: RowKey, steps: int | None = None) -> SkelTrainConfig:
     return cfg
 
 
-def run_folder(key: RowKey) -> Path:
+def row_run_dir(key: RowKey) -> Path:
     return ec.RUNS / f"skel-{key.name}"
 
 
@@ -137,15 +137,17 @@ def comparable(config: dict[str, Any]) -> dict[str, Any]:
     is filled in from the data when training starts (steps_per_epoch), as JSON reads it back.
 
     Read through the configuration's dataclass first: a field added since the row was stored
-    reads as its default (what the row's code computed), as `nmjax.train.common.load_config`
+    reads as its default (what the row's code computed), as `nmjax.run_folder.load_config`
     reads an older run's config.json.
     """
     try:
-        config = common.config_to_dict(common.config_from_dict(SkelTrainConfig, config))
+        config = config_to_dict(config_from_dict(SkelTrainConfig, config))
     except (ValueError, TypeError):  # a field since removed: compared as stored, so unequal
         pass
-    derived = ("run", "steps_per_epoch")
-    return json.loads(json.dumps({k: v for k, v in config.items() if k not in derived}))
+    config = {k: v for k, v in config.items() if k != "run"}
+    if isinstance(config.get("loop"), dict):
+        config["loop"] = {k: v for k, v in config["loop"].items() if k != "steps_per_epoch"}
+    return json.loads(json.dumps(config))
 
 
 def descends_from(commit: str | None, ancestor: str = PHASE1_SINCE) -> bool:
@@ -164,7 +166,7 @@ def same_computation(row: dict[str, Any], cfg: SkelTrainConfig) -> bool:
     """Whether a stored row was made by code that computes what `cfg` would now (module doc)."""
     stamp = row.get("provenance", {})
     return (
-        comparable(row.get("config", {})) == comparable(common.config_to_dict(cfg))
+        comparable(row.get("config", {})) == comparable(config_to_dict(cfg))
         and stamp.get("metrics") == METRICS
         and stamp.get("dirty") is False
         and descends_from(stamp.get("commit"))
@@ -218,29 +220,29 @@ def plan(
 def complete(run: Path, cfg: SkelTrainConfig) -> bool:
     """Whether `run` holds a finished run of `cfg` with its skeleton."""
     try:
-        saved = json.loads((run / common.CONFIG_FILE).read_text())
+        saved = json.loads((run / run_folder.CONFIG_FILE).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return False
-    steps = common.checkpoint_steps(run / common.CHECKPOINTS)
+    steps = run_folder.checkpoint_steps(run)
     return (
-        comparable(saved) == comparable(common.config_to_dict(cfg))
+        comparable(saved) == comparable(config_to_dict(cfg))
         and bool(steps)
-        and steps[-1] >= cfg.steps
-        and (run / common.SKELETON_FILE).is_file()
+        and steps[-1] >= cfg.loop.steps
+        and (run / run_folder.SKELETON_FILE).is_file()
     )
 
 
 def train(key: RowKey, cfg: SkelTrainConfig) -> tuple[Path, float | None]:
     """The finished run folder of a row (trained now, or resumed, unless already complete) and
     the minutes this call spent training it (None when it was already complete)."""
-    run = run_folder(key)
+    run = row_run_dir(key)
     if complete(run, cfg):
         return run, None
     tic = time.perf_counter()
-    resumable = (run / common.CONFIG_FILE).is_file() and comparable(
-        json.loads((run / common.CONFIG_FILE).read_text())
-    ) == comparable(common.config_to_dict(cfg))
-    has_checkpoint = resumable and bool(common.checkpoint_steps(run / common.CHECKPOINTS))
+    resumable = (run / run_folder.CONFIG_FILE).is_file() and comparable(
+        json.loads((run / run_folder.CONFIG_FILE).read_text())
+    ) == comparable(config_to_dict(cfg))
+    has_checkpoint = resumable and bool(run_folder.checkpoint_steps(run))
     skel.train(cfg, run, resume=has_checkpoint, overwrite=not has_checkpoint, progress=True)
     runs.finish_phase1(run)
     return run, (time.perf_counter() - tic) / 60
@@ -264,7 +266,7 @@ def alg1_vs_filtered(detector: Detector, max_crops: int) -> dict[str, dict[str, 
     """Edge precision (within 2 hops) and bone recall of both tree rules on the run's affinity
     and mean intensities, pruned at the run's threshold, on the same test keypoints."""
     run = detector.run
-    stored = json.loads((run / common.SKELETON_FILE).read_text())
+    stored = json.loads((run / run_folder.SKELETON_FILE).read_text())
     affinity, stats = runs.read_skeleton_inputs(run)
     names, keypoints, joints = [], [], []
     for name, _, gt, kp, _ in phase1_outputs(detector, max_crops):
@@ -304,7 +306,7 @@ def score(key: RowKey, run: Path, cfg: SkelTrainConfig, minutes, stamp) -> dict[
         "variant": key.variant,
         "run": str(run),
         "train_minutes": minutes,
-        "steps": cfg.steps,
+        "steps": cfg.loop.steps,
         "scores": scores,
         "per_sequence": {
             "tracking_cd": results["tracking"]["per_sequence"],
@@ -314,7 +316,7 @@ def score(key: RowKey, run: Path, cfg: SkelTrainConfig, minutes, stamp) -> dict[
         "keep": keep.tolist(),
         "alg1_vs_filtered": alg1_vs_filtered(detector, MAX_CROPS),
         "frame": picture_frame(detector),
-        "config": json.loads((run / common.CONFIG_FILE).read_text()),  # as it trained
+        "config": json.loads((run / run_folder.CONFIG_FILE).read_text()),  # as it trained
         "provenance": stamp,
     }
 
@@ -380,7 +382,7 @@ def main(argv: list[str] | None = None) -> None:
     while todo:
         key, cfg = todo[0]
         stamp = provenance.stamp(METRICS)
-        print(f"--- {key.name}: training into {run_folder(key)}", flush=True)
+        print(f"--- {key.name}: training into {row_run_dir(key)}", flush=True)
         run, minutes = train(key, cfg)
         row = score(key, run, cfg, minutes, stamp)
         made.add(key)

@@ -41,8 +41,14 @@ import numpy as np
 import paper_phase1
 import phase2_tables
 
-from nmjax import provenance, runs
-from nmjax.config import DynTrainConfig, dyn_preset
+from nmjax import provenance, run_folder, runs
+from nmjax.config import (
+    DynTrainConfig,
+    config_from_dict,
+    config_to_dict,
+    dyn_preset,
+    replace_fields,
+)
 from nmjax.evaluate import (
     GEN_HORIZONS,
     GENERATION_METRICS,
@@ -51,7 +57,7 @@ from nmjax.evaluate import (
     evaluate_generation_run,
     evaluate_run,
 )
-from nmjax.train import common
+from nmjax.train import metric_log
 
 BODIES = phase2_tables.BODIES
 MODELS = tuple(phase2_tables.MODELS)
@@ -80,7 +86,7 @@ METRICS = {
 DEFAULT_ROW_MINUTES = 20.0
 
 
-def run_folder(body: str, model: str) -> Path:
+def dyn_run_dir(body: str, model: str) -> Path:
     return ec.RUNS / f"dyn-{body}-{model}"
 
 
@@ -91,10 +97,10 @@ def dyn_config(body: str, model: str, skel: Path, steps: int | None = None) -> D
     cfg = dataclasses.replace(
         cfg,
         skel_run=str(skel),
-        run=str(run_folder(body, model)),
+        run=str(dyn_run_dir(body, model)),
         model=dataclasses.replace(cfg.model, model=model),
     )
-    return cfg if steps is None else dataclasses.replace(cfg, steps=steps)
+    return cfg if steps is None else replace_fields(cfg, steps=steps)
 
 
 def comparable(config: dict[str, Any]) -> dict[str, Any]:
@@ -103,11 +109,13 @@ def comparable(config: dict[str, Any]) -> dict[str, Any]:
     (steps_per_epoch), read through the dataclass so that a field added since the row was
     stored reads as its default, as JSON reads it back."""
     try:
-        config = common.config_to_dict(common.config_from_dict(DynTrainConfig, config))
+        config = config_to_dict(config_from_dict(DynTrainConfig, config))
     except (ValueError, TypeError):  # a field since removed: compared as stored, so unequal
         pass
-    derived = ("run", "skel_run", "steps_per_epoch")
-    return json.loads(json.dumps({k: v for k, v in config.items() if k not in derived}))
+    config = {k: v for k, v in config.items() if k not in ("run", "skel_run")}
+    if isinstance(config.get("loop"), dict):
+        config["loop"] = {k: v for k, v in config["loop"].items() if k != "steps_per_epoch"}
+    return json.loads(json.dumps(config))
 
 
 def phase1_source(
@@ -137,7 +145,7 @@ def same_computation(
     return (
         set(stored) == set(configs)
         and all(
-            comparable(stored[m].get("config", {})) == comparable(common.config_to_dict(cfg))
+            comparable(stored[m].get("config", {})) == comparable(config_to_dict(cfg))
             for m, cfg in configs.items()
         )
         and row.get("settings") == SETTINGS
@@ -152,15 +160,15 @@ def same_computation(
 def complete(run: Path, cfg: DynTrainConfig) -> bool:
     """Whether `run` holds a finished run of `cfg`."""
     try:
-        saved = json.loads((run / common.CONFIG_FILE).read_text())
+        saved = json.loads((run / run_folder.CONFIG_FILE).read_text())
     except (FileNotFoundError, json.JSONDecodeError):
         return False
-    steps = common.checkpoint_steps(run / common.CHECKPOINTS)
+    steps = run_folder.checkpoint_steps(run)
     return (
-        comparable(saved) == comparable(common.config_to_dict(cfg))
+        comparable(saved) == comparable(config_to_dict(cfg))
         and saved.get("skel_run") == cfg.skel_run
         and bool(steps)
-        and steps[-1] >= cfg.steps
+        and steps[-1] >= cfg.loop.steps
     )
 
 
@@ -181,12 +189,12 @@ def train(cfg: DynTrainConfig) -> tuple[Path, float | None]:
 def model_record(run: Path, minutes: float | None) -> dict[str, Any]:
     """What a row keeps of one trained phase-2 run: its config as trained, the curves, the last
     validation and the training speed."""
-    records = common.read_metrics(run)
+    records = metric_log.read_metrics(run)
     rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]
     validation = [r for r in records if "val/recon" in r]
     return {
         "run": str(run),
-        "config": json.loads((run / common.CONFIG_FILE).read_text()),
+        "config": json.loads((run / run_folder.CONFIG_FILE).read_text()),
         "train_minutes": minutes,
         "final_validation": validation[-1] if validation else None,
         "steps_per_s_median": float(np.median(rates)) if rates else None,

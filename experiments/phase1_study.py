@@ -40,7 +40,7 @@ import exp_common
 import numpy as np
 
 from nmjax import atomic, provenance, runs
-from nmjax.config import apply_overrides, skel_preset, with_steps
+from nmjax.config import apply_overrides, replace_fields, skel_preset, with_steps
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1
@@ -180,7 +180,7 @@ def variant_config(data: str, name: str, minutes: float, seed: int, steps: int |
     if "gt_joints" in variant.overrides:
         cfg = exp_common.supervised_by_joints(cfg, data)
     # Counted in steps: 100,000 when the wall-clock limit ends the run.
-    cfg = dataclasses.replace(
+    cfg = replace_fields(
         with_steps(cfg, 100_000 if steps is None else steps),
         seed=seed,
         time_limit_minutes=minutes if steps is None else 0.0,
@@ -223,11 +223,11 @@ def run_extras(run: Path, detector: Detector) -> dict[str, float | None]:
     median share of a heatmap's mass beyond 1.5 cells of its peak (logged since a15e98f)."""
     from flax import nnx
 
-    from nmjax.train import common, skel
+    from nmjax.train import metric_log, skel
 
     model = nnx.merge(detector.graphdef, detector.state)
     extras = {f"{k}_final": float(v) for k, v in skel.fusion(model).items()}
-    far = [r["val/heat_far_mass"] for r in common.read_metrics(run) if "val/heat_far_mass" in r]
+    far = [r["val/heat_far_mass"] for r in metric_log.read_metrics(run) if "val/heat_far_mass" in r]
     extras["heat_far_mass_last"] = far[-1] if far else None
     return extras
 

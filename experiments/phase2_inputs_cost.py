@@ -64,7 +64,7 @@ def aist_count(frames_per_sequence: int) -> dict[str, float]:
     sequences = len(set(splits.read_published("aist")["train"]))
     span = (cfg.frames - 1) * 2 + 1  # the release's sample rate 2
     starts = sequences * max(frames_per_sequence - span + 1, 1)
-    draws = cfg.epochs * math.ceil(sequences / cfg.batch_size) * cfg.batch_size
+    draws = cfg.loop.epochs * math.ceil(sequences / cfg.batch_size) * cfg.batch_size
     expected = starts * (1.0 - math.exp(draws * math.log1p(-1.0 / starts)))
     return {
         "training_sequences": sequences,
@@ -73,7 +73,7 @@ def aist_count(frames_per_sequence: int) -> dict[str, float]:
         "draws": draws,
         "expected_detected": expected,
         "bound_detected": min(starts, draws),
-        "release_detected": cfg.epochs * sequences,
+        "release_detected": cfg.loop.epochs * sequences,
         "up_front_detected": starts,
     }
 

@@ -29,6 +29,7 @@ import numpy as np
 import phase1_tables
 
 from nmjax import provenance, viz
+from nmjax.config import DynTrainConfig, config_from_dict
 from nmjax.evaluate import REFERENCE, fmt, generation_tables, interpolation_table
 
 BODIES = phase1_tables.BODIES
@@ -44,17 +45,22 @@ def _commit(row: dict[str, Any]) -> str:
     return (stamp.get("commit") or "unknown")[:7] + ("+dirty" if stamp.get("dirty") else "")
 
 
+def _config(model: dict[str, Any]) -> DynTrainConfig:
+    """A row's phase-2 configuration as trained, whichever config.json layout it was stored in."""
+    return config_from_dict(DynTrainConfig, model["config"])
+
+
 def _made_by(row: dict[str, Any]) -> str:
     """One markdown line: what a row was trained on and by which code."""
     p1 = row["phase1"]
     models = ", ".join(
-        f"{MODELS[m]} `{info['run']}` {info['config']['steps']} steps"
+        f"{MODELS[m]} `{info['run']}` {_config(info).loop.steps} steps"
         + (f" ({info['train_minutes']:.1f} min)" if info.get("train_minutes") else "")
         for m, info in row["models"].items()
     )
     return (
         f"phase 1: row {p1['row']} (`{p1['run']}`, commit {p1['commit'][:7]}); phase 2 "
-        f"(`cpu` preset, inputs {row['models']['nm']['config']['inputs']}): {models}; "
+        f"(`cpu` preset, inputs {_config(row['models']['nm']).inputs}): {models}; "
         f"trained and scored at {_commit(row)}"
     )
 

@@ -35,7 +35,7 @@ from nmjax.bench import environment
 from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
 from nmjax.models import conv_kernels
 from nmjax.models.detector import KeypointDetector
-from nmjax.train import common, parallel, skel
+from nmjax.train import optim, parallel, skel
 
 FORMS = conv_kernels.CONV_FORMS
 METRICS = {
@@ -54,7 +54,7 @@ def step_memory(cfg, form: str) -> dict:
     skel.check_config(cfg)
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed))
     settings, mesh = skel.StepSettings.of(cfg), parallel.data_mesh()
-    graphdef, state = common.init_state(model, settings.optimizer)
+    graphdef, state = optim.init_state(model, settings.optimizer)
     g = cfg.model.grid
     voxels = jax.ShapeDtypeStruct((cfg.data.batch_size, cfg.data.frames, g, g, g), jnp.float32)
     tic = time.perf_counter()

@@ -9,10 +9,11 @@ result file says which input was used.
 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/train_dyn_synth.py --data synth-arm
 
-Writes experiments/results/train_dyn_<data>.json (configuration, final validation, steps/s,
-curves) and .png (training loss; validation reconstruction against "repeat the last pose";
+Writes experiments/results/train_dyn_synth_<data>.json (configuration, final validation,
+steps/s, curves) and .png (training loss; validation reconstruction against "repeat the last pose";
 generation against "hold the last observed pose"), both stamped with the commit, machine and
-metric definitions (`nmjax.provenance`).
+metric definitions (`nmjax.provenance`). (`train_dyn_<body>.*`, without "synth_", are the
+paper results' curves, rendered by `phase2_tables.py` from `paper_phase2.py`'s rows.)
 """
 
 from __future__ import annotations
@@ -20,16 +21,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-from collections import deque
 from pathlib import Path
 
 import numpy as np
 
-from nmjax import atomic, provenance, runs, viz
-from nmjax.config import DYN_INPUTS, dyn_preset
+from nmjax import provenance, run_folder, runs, viz
+from nmjax.config import DYN_INPUTS, config_to_dict, dyn_preset, replace_fields
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.normalize import normalize_sequence
-from nmjax.train import common
+from nmjax.skeleton import skeleton_from_parents
+from nmjax.train import metric_log
 
 RESULTS = Path(__file__).parent / "results"
 METRICS = {
@@ -43,19 +44,9 @@ METRICS = {
 }
 
 
-def topological_order(parents: list[int]) -> list[int]:
-    """Breadth-first order from the root (the joint that is its own parent)."""
-    root = next(k for k, p in enumerate(parents) if p == k)
-    order, queue = [], deque([root])
-    while queue:
-        k = queue.popleft()
-        order.append(k)
-        queue.extend(j for j, p in enumerate(parents) if p == k and j != k)
-    return order
-
-
 def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
-    """A C10-layout folder from ground-truth joints of `sequences` generated sequences."""
+    """A phase-1 run folder (`nmjax.run_folder`'s skeleton.json and keypoints_<split>.npz) from
+    the ground-truth joints of `sequences` generated sequences."""
     body = bodies.get_body(data)
     splits = layout.split_names(sequences)
     rng = np.random.default_rng(seed)
@@ -68,12 +59,9 @@ def oracle_run(data: str, folder: Path, sequences: int, seed: int) -> Path:
             _, joints = normalize_sequence(seq.vertices, seq.joints)
             alpha = np.ones((*joints.shape[:2], 1), np.float32)
             trajectories[name] = np.concatenate([joints, alpha], axis=-1)
-        atomic.save_npz(folder / f"keypoints_{split}.npz", **trajectories)
-    parents = [int(p) for p in body.parents]
-    atomic.write_json(
-        folder / "skeleton.json",
-        {"parents": parents, "root": parents.index(0), "order": topological_order(parents)},
-    )
+        run_folder.write_trajectories(run_folder.keypoints_file(folder, split), trajectories)
+    # Breadth first from the root, children by index.
+    run_folder.write_skeleton(folder, skeleton_from_parents(np.asarray(body.parents)))
     return folder
 
 
@@ -103,7 +91,7 @@ def main() -> None:
     curves, summary = {}, {}
     for model in args.models:
         cfg = dyn_preset(args.data, args.preset)
-        cfg = dataclasses.replace(
+        cfg = replace_fields(
             cfg,
             inputs=inputs,
             skel_run=str(skel_run),
@@ -119,18 +107,18 @@ def main() -> None:
 
             shutil.rmtree(run_dir)
         run_dir, _ = runs.train_dynamics(cfg, progress=False)
-        records = common.read_metrics(run_dir)
+        records = metric_log.read_metrics(run_dir)
         curves[model] = records
         rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]
         final = next(r for r in reversed(records) if "val/recon" in r)
         summary[model] = {
-            "config": common.config_to_dict(cfg),
+            "config": config_to_dict(cfg),
             "final_validation": final,
             "train_steps_per_s_median": float(np.median(rates)) if rates else None,
         }
         print(json.dumps({model: summary[model]["final_validation"]}), flush=True)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    stem = RESULTS / f"train_dyn_{args.data}"
+    stem = RESULTS / f"train_dyn_synth_{args.data}"
     provenance.write_json(
         stem.with_suffix(".json"),
         {

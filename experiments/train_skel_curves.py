@@ -22,7 +22,7 @@ from nmjax import provenance
 from nmjax.evaluate import PHASE1_METRICS, evaluate_phase1, phase1_scores
 from nmjax.losses import TERMS
 from nmjax.runs import Detector
-from nmjax.train import common
+from nmjax.train import metric_log
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 RESULTS = Path(__file__).parent / "results"
@@ -78,7 +78,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     stamp = provenance.stamp(METRICS)
     config = json.loads((args.run / "config.json").read_text())
-    records = common.read_metrics(args.run)
+    records = metric_log.read_metrics(args.run)
     train, val = curves(records, "train/"), curves(records, "val/")
     data = config["data"]["name"]
     final_val = {name: series[-1][1] for name, series in val.items()}

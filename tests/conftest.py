@@ -61,3 +61,19 @@ def _release_compiled_programs():
 
     jax.clear_caches()
     gc.collect()
+
+
+@pytest.fixture(scope="module")
+def data_root(tmp_path_factory):
+    """The trainer tests' synth-arm set (`tiny_configs.small_arm_data`), one per test module."""
+    from tiny_configs import small_arm_data
+
+    return small_arm_data(tmp_path_factory.mktemp("data") / "synth-arm")
+
+
+@pytest.fixture(scope="module")
+def fake_run(tmp_path_factory):
+    """A fake phase-1 run (`tiny_runs.make_fake_run`) named as `nmjax train-skel` names one."""
+    from tiny_runs import make_fake_run
+
+    return make_fake_run(tmp_path_factory.mktemp("phase1") / "skel-synth-arm-20260101-000000")

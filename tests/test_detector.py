@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from nmjax.config import skel_preset
+from nmjax.config import config_from_dict, config_to_dict, skel_preset
 from nmjax.models import blocks
 from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import KeypointDetector, check_detector_config
-from nmjax.train import common
 
 
 def test_detector_value_and_gradient_do_not_depend_on_the_conv_forms():
@@ -91,9 +90,9 @@ def test_conv_form_is_a_field_of_the_configuration_that_reaches_every_convolutio
     cfg = dataclasses.replace(
         cfg, model=dataclasses.replace(cfg.model, conv_form="stacked", compute_dtype="bfloat16")
     )
-    stored = common.config_to_dict(cfg)
+    stored = config_to_dict(cfg)
     assert stored["model"]["conv_form"] == "stacked"
-    back = common.config_from_dict(type(cfg), stored)
+    back = config_from_dict(type(cfg), stored)
     model = KeypointDetector(back.model, rngs=nnx.Rngs(0))
     convs = [m for _, m in nnx.iter_modules(model) if isinstance(m, blocks.Conv3D)]
     assert convs and {c.evaluation for c in convs} == {Evaluation("stacked", "bfloat16")}

@@ -80,11 +80,11 @@ def runs(tmp_path_factory):
 
 def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, monkeypatch):
     """M-CD pipeline with a stand-in decoder that voxelises the keypoints themselves."""
+    from nmjax import run_folder
     from nmjax.config import SkelTrainConfig
     from nmjax.data.datasets import load_sequences
-    from nmjax.train import common
 
-    cfg = common.load_config(runs["skel"], SkelTrainConfig)
+    cfg = run_folder.load_config(runs["skel"], SkelTrainConfig)
     grid = cfg.data.grid
     (seq,) = load_sequences(cfg.data.name, "test", cfg.data.root)
     t = np.arange(12, dtype=np.float32)[:, None, None]

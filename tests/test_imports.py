@@ -178,3 +178,16 @@ def test_the_application_packages_are_split_by_job_into_short_files():
     assert "nmjax.data.meshes" in imported_modules("nmjax.data.prepare")
     for name in ("nmjax.runs", "nmjax.data.pipeline", "nmjax.evaluate.phase1"):
         assert "nmjax.data.normalize" in imported_modules(name), name
+
+
+def test_the_run_folder_sits_below_the_trainers():
+    # run_folder is read by the trainers, runs and the application modules; it reads none of
+    # them (nor a model): what a folder holds is decided in one place below every reader.
+    above = ("nmjax.train", "nmjax.runs", "nmjax.evaluate", "nmjax.view", "nmjax.tasks")
+    above += ("nmjax.release", "nmjax.cli", "nmjax.bench", "nmjax.models", "nmjax.export")
+    imports = imported_modules("nmjax.run_folder")
+    assert not {m for m in imports if m.startswith(above)}, sorted(imports)
+    assert imports <= {"nmjax.atomic", "nmjax.config", "nmjax.skeleton"}
+    # The trainers' shared pieces read the run folder's names from it, never from a trainer.
+    for name in ("nmjax.train.checkpoints", "nmjax.train.loop", "nmjax.train.metric_log"):
+        assert not imported_modules(name) & {"nmjax.train.skel", "nmjax.train.dyn", "nmjax.runs"}

@@ -42,7 +42,7 @@ def _head() -> str | None:
 
 
 def test_a_phase1_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver):
-    from nmjax.train import common
+    from nmjax.config import config_to_dict
 
     if _head() is None or not driver.descends_from(_head()):
         pytest.skip("needs this repository's git history (a clone with PHASE1_SINCE in it)")
@@ -50,7 +50,7 @@ def test_a_phase1_row_is_kept_only_when_made_by_code_that_computes_the_same_thin
     cfg = driver.row_config(key)
     assert (cfg.seed, cfg.data.seed, cfg.run) == (1, 1, "runs/exp/skel-synth-arm-s1-preset")
     stamp = {"commit": _head(), "dirty": False, "metrics": driver.METRICS}
-    row = {**dataclasses.asdict(key), "config": common.config_to_dict(cfg), "provenance": stamp}
+    row = {**dataclasses.asdict(key), "config": config_to_dict(cfg), "provenance": stamp}
     assert driver.same_computation(row, cfg)
     moved = {**row, "config": {**row["config"], "run": "elsewhere"}}  # the folder is no change
     assert driver.same_computation(moved, cfg)
@@ -259,7 +259,7 @@ def test_a_tiny_phase1_row_is_trained_scored_written_and_not_trained_again(
 
 
 def test_a_phase2_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver2):
-    from nmjax.train import common
+    from nmjax.config import config_to_dict
 
     head = _git("rev-parse", "HEAD")
     if head is None or not driver2.paper_phase1.descends_from(head, driver2.PHASE2_SINCE):
@@ -273,18 +273,19 @@ def test_a_phase2_row_is_kept_only_when_made_by_code_that_computes_the_same_thin
     row = {
         "body": "synth-arm",
         "phase1": source,
-        "models": {m: {"config": common.config_to_dict(c)} for m, c in configs.items()},
+        "models": {m: {"config": config_to_dict(c)} for m, c in configs.items()},
         "settings": dict(driver2.SETTINGS),
         "provenance": stamp,
     }
     assert driver2.same_computation(row, configs, source)
     # The folders' paths, and steps_per_epoch (filled in from the data as training starts), are
     # no change.
+    stored = row["models"]["nm"]["config"]
     moved = {
-        **row["models"]["nm"]["config"],
+        **stored,
         "run": "elsewhere",
         "skel_run": "/abs/skel",
-        "steps_per_epoch": 2,
+        "loop": {**stored["loop"], "steps_per_epoch": 2},
     }
     assert driver2.same_computation(
         {**row, "models": {**row["models"], "nm": {"config": moved}}}, configs, source
@@ -361,7 +362,7 @@ def test_a_tiny_phase2_row_is_trained_scored_rendered_and_not_trained_again(
     }
     assert set(row["models"]) == {"nm", "vrnn"} and row["settings"] == small
     for info in row["models"].values():
-        assert info["train_minutes"] > 0 and info["config"]["steps"] == 10
+        assert info["train_minutes"] > 0 and info["config"]["loop"]["steps"] == 10
         assert any("val/recon" in r for r in info["curve"]) and info["final_validation"]
     assert set(row["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
     assert set(row["interpolation"]["Ours"]) == {"3"}

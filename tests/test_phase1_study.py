@@ -8,6 +8,8 @@ from pathlib import Path
 import pytest
 from experiment_scripts import load_experiment
 
+from nmjax.config import replace_fields
+
 
 @pytest.fixture
 def study(tmp_path, monkeypatch):
@@ -38,11 +40,11 @@ def test_every_variant_is_a_valid_config_with_its_change(study):
     from nmjax.train import skel
 
     base = study.variant_config("synth-arm", "base", 12.0, 3)
-    assert base.seed == 3 and base.data.seed == 3 and base.time_limit_minutes == 12.0
+    assert base.seed == 3 and base.data.seed == 3 and base.loop.time_limit_minutes == 12.0
     for name in study.VARIANTS:
         cfg = study.variant_config("synth-arm", name, 12.0, 0, steps=50)
         skel.check_config(cfg)
-        assert cfg.steps == 50 and cfg.time_limit_minutes == 0.0, name
+        assert cfg.loop.steps == 50 and cfg.loop.time_limit_minutes == 0.0, name
     assert study.variant_config("synth-arm", "sigma_paper", 1, 0).model.sigma_g == 0.75
     gt = study.variant_config("synth-arm", "gt_stride2", 1, 0)
     assert gt.model.num_keypoints == 13 and gt.weights.vol_target == "joints"  # K = J
@@ -57,17 +59,19 @@ def test_every_variant_is_a_valid_config_with_its_change(study):
 
 
 def test_base_variant_is_the_cpu_preset_counted_in_steps(study):
-    import dataclasses
 
     from nmjax.config import skel_preset, with_steps
 
     base = study.variant_config("synth-hand", "base", 12.0, 0)
     preset = skel_preset("synth-hand", "cpu")
-    assert base == dataclasses.replace(with_steps(preset, 100_000), time_limit_minutes=12.0, seed=0)
+    assert base == replace_fields(with_steps(preset, 100_000), time_limit_minutes=12.0, seed=0)
     # The hand's cpu preset carries its body changes (config.CPU_BODY_CHANGES).
-    assert base.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (10.0, 0.5)
+    assert base.loop.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (
+        10.0,
+        0.5,
+    )
     fixed = study.variant_config("synth-arm", "vol10_temp0.5", 0.0, 1, steps=600)
-    assert (fixed.steps, fixed.time_limit_minutes, fixed.seed) == (600, 0.0, 1)
+    assert (fixed.loop.steps, fixed.loop.time_limit_minutes, fixed.seed) == (600, 0.0, 1)
     assert (fixed.weights.vol, fixed.model.keypoint_temperature) == (10.0, 0.5)
 
 

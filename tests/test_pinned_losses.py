@@ -13,15 +13,13 @@ reformulated convolution, not for a different loss.
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
-from test_train_dyn import make_fake_run
 from tiny_configs import small_arm_data, small_skel_config
+from tiny_runs import make_fake_run
 
 from nmjax import runs
-from nmjax.config import dyn_preset
-from nmjax.train import common, skel
+from nmjax.config import dyn_preset, replace_fields
+from nmjax.train import metric_log, skel
 
 SKEL_LOSSES = [31.32627296447754, 35.00435256958008, 33.2287483215332, 37.119834899902344]
 DYN_LOSSES = [1.5169981718063354, 1.5589879751205444, 1.4423792362213135, 1.585466742515564]
@@ -29,7 +27,7 @@ RTOL = 1e-4
 
 
 def _train_losses(run) -> list[float]:
-    records = common.read_metrics(run)
+    records = metric_log.read_metrics(run)
     assert [r["step"] for r in records if "train/loss" in r] == [1, 2, 3, 4]
     return [r["train/loss"] for r in records if "train/loss" in r]
 
@@ -43,7 +41,7 @@ def test_phase1_losses_are_pinned(tmp_path):
 
 def test_phase2_losses_are_pinned(tmp_path):
     fake = make_fake_run(tmp_path / "phase1")
-    cfg = dataclasses.replace(
+    cfg = replace_fields(
         dyn_preset("synth-arm", "tiny"),
         skel_run=str(fake),
         run=str(tmp_path / "dyn"),

@@ -13,12 +13,13 @@ from nmjax.config import (
     CPU_LR_MILESTONES,
     CPU_STEPS,
     dyn_preset,
+    replace_fields,
     resolve_epochs,
     skel_preset,
     steps_per_epoch,
     with_steps,
 )
-from nmjax.train import common
+from nmjax.train import optim
 
 # The release's train.py / dataset/config.py: (epochs, decay epochs) per dataset; the synthetic
 # bodies take their real counterpart's.
@@ -47,11 +48,11 @@ def test_steps_per_epoch_fills_the_last_batch():
 @pytest.mark.parametrize("data", sorted(RELEASE_EPOCHS))
 def test_default_preset_is_the_releases_recipe(data):
     cfg = skel_preset(data, "default")
-    assert (cfg.epochs, cfg.decay_epochs) == RELEASE_EPOCHS[data]
-    assert cfg.learning_rate == 4e-4 and cfg.lr_decay == (0.25, 0.1)
-    assert cfg.clip_norm == 0.0 and cfg.optimizer_reset == "epoch"
+    assert (cfg.loop.epochs, cfg.optim.decay_epochs) == RELEASE_EPOCHS[data]
+    assert cfg.optim.learning_rate == 4e-4 and cfg.optim.lr_decay == (0.25, 0.1)
+    assert cfg.optim.clip_norm == 0.0 and cfg.optim.optimizer_reset == "epoch"
     assert (cfg.data.batch_size, cfg.data.frames, cfg.model.grid) == (3, 10, 64)
-    settings = common.OptimizerSettings.of(resolve_epochs(cfg, 27, 3))
+    settings = optim.OptimizerSettings.of(resolve_epochs(cfg, 27, 3))
     assert settings.restart_period == 9 and settings.clip_norm == 0.0
     assert settings.milestones == tuple(9 * e for e in RELEASE_EPOCHS[data][1])
 
@@ -59,12 +60,12 @@ def test_default_preset_is_the_releases_recipe(data):
 def test_resolve_epochs_fills_steps_and_milestones_once():
     cfg = skel_preset("aist", "default")
     resolved = resolve_epochs(cfg, 2461, 3)  # AIST++'s training sequences at B = 3
-    assert resolved.steps_per_epoch == 821
-    assert resolved.steps == 200 * 821 == 164_200
-    assert resolved.lr_milestones == (60 * 821, 140 * 821)
+    assert resolved.loop.steps_per_epoch == 821
+    assert resolved.loop.steps == 200 * 821 == 164_200
+    assert resolved.optim.lr_milestones == (60 * 821, 140 * 821)
     # Resolved already (a resumed run): its steps stand, the data must still fit them.
-    longer = resolve_epochs(resolved.__class__(**{**resolved.__dict__, "steps": 170_000}), 2461, 3)
-    assert longer.steps == 170_000
+    longer = resolve_epochs(replace_fields(resolved, steps=170_000), 2461, 3)
+    assert longer.loop.steps == 170_000
     with pytest.raises(ValueError, match="steps per epoch"):
         resolve_epochs(resolved, 2000, 3)
 
@@ -73,9 +74,14 @@ def test_cpu_preset_trains_the_recipe_that_measured_better_on_two_cores():
     # experiments/results/recipe_ab.md: lr 1e-3, one Adam state, clipping at 1.0, 2,200 steps.
     for data in ("synth-arm", "synth-hand"):
         cfg = skel_preset(data, "cpu")
-        assert (cfg.epochs, cfg.steps, cfg.lr_milestones) == (0, 2200, (1400, 1900))
-        assert (cfg.learning_rate, cfg.clip_norm, cfg.optimizer_reset) == (1e-3, 1.0, "never")
-        assert resolve_epochs(cfg, 27, 2).steps == CPU_STEPS  # a step count: no epochs to resolve
+        assert (cfg.loop.epochs, cfg.loop.steps, cfg.optim.lr_milestones) == (0, 2200, (1400, 1900))
+        assert (cfg.optim.learning_rate, cfg.optim.clip_norm, cfg.optim.optimizer_reset) == (
+            1e-3,
+            1.0,
+            "never",
+        )
+        # a step count: no epochs to resolve
+        assert resolve_epochs(cfg, 27, 2).loop.steps == CPU_STEPS
     # The hand's per-body changes (recipe_ab.md, "Variants"); the arm has none.
     hand, arm = skel_preset("synth-hand", "cpu"), skel_preset("synth-arm", "cpu")
     assert (hand.weights.vol, hand.model.keypoint_temperature) == (10.0, 0.5)
@@ -83,15 +89,19 @@ def test_cpu_preset_trains_the_recipe_that_measured_better_on_two_cores():
     assert skel_preset("synth-hand", "default").weights.vol == 0.1  # the paper's HanCo value
     # The paper's scale keeps the release's recipe.
     paper = skel_preset("synth-arm", "default")
-    assert (paper.learning_rate, paper.clip_norm, paper.optimizer_reset) == (4e-4, 0.0, "epoch")
+    assert (paper.optim.learning_rate, paper.optim.clip_norm, paper.optim.optimizer_reset) == (
+        4e-4,
+        0.0,
+        "epoch",
+    )
 
 
 def test_a_step_count_keeps_the_decays_at_their_fractions():
     cfg = with_steps(skel_preset("synth-arm", "default"), 1000)
-    assert (cfg.epochs, cfg.steps, cfg.lr_milestones) == (0, 1000, (300, 700))
+    assert (cfg.loop.epochs, cfg.loop.steps, cfg.optim.lr_milestones) == (0, 1000, (300, 700))
     cpu = with_steps(skel_preset("synth-arm", "cpu"), 1100)
-    assert cpu.lr_milestones == tuple(m // 2 for m in CPU_LR_MILESTONES)
-    assert resolve_epochs(cfg, 27, 2).steps == 1000  # no epochs to resolve
+    assert cpu.optim.lr_milestones == tuple(m // 2 for m in CPU_LR_MILESTONES)
+    assert resolve_epochs(cfg, 27, 2).loop.steps == 1000  # no epochs to resolve
 
 
 def _run(tx, grads):
@@ -117,7 +127,7 @@ def test_learning_rate_on_both_sides_of_each_decay():
     # Constant gradients: Adam's normalised step is 1 in every coordinate, so |update| = rate,
     # with or without restarts.
     for period in (None, 0, 3):
-        tx = common.make_optimizer(0.1, (4, 7), (0.25, 0.1), restart_period=period)
+        tx = optim.make_optimizer(0.1, (4, 7), (0.25, 0.1), restart_period=period)
         updates, _ = _run(tx, jnp.ones((9, 2)))
         np.testing.assert_allclose(
             np.abs(updates[:, 0]), [0.1] * 4 + [0.025] * 3 + [0.01] * 2, rtol=1e-4
@@ -127,9 +137,9 @@ def test_learning_rate_on_both_sides_of_each_decay():
 def test_adam_restarts_at_epoch_boundaries_and_not_inside():
     grads = jax.random.normal(jax.random.key(0), (7, 5))
     period = 3
-    restarted, states = _run(common.make_optimizer(1.0, restart_period=period), grads)
-    plain, _ = _run(common.make_optimizer(1.0), grads)
-    fresh, _ = _run(common.make_optimizer(1.0), grads[period:])
+    restarted, states = _run(optim.make_optimizer(1.0, restart_period=period), grads)
+    plain, _ = _run(optim.make_optimizer(1.0), grads)
+    fresh, _ = _run(optim.make_optimizer(1.0), grads[period:])
     # Inside the first epoch: the same as one Adam state; from step `period` on: a fresh Adam.
     np.testing.assert_allclose(restarted[:period], plain[:period], rtol=1e-6)
     np.testing.assert_allclose(restarted[period : 2 * period], fresh[:period], rtol=1e-5)
@@ -145,12 +155,12 @@ def test_adam_restarts_at_epoch_boundaries_and_not_inside():
 
 def test_no_clipping_by_default_and_clipping_as_an_option():
     big = jnp.full((1, 4), 100.0)
-    tx = optax.chain(common.make_optimizer(1.0, clip_norm=1.0))
-    assert common.make_optimizer(1.0, clip_norm=0.0).init(big[0]) != tx.init(big[0])
+    tx = optax.chain(optim.make_optimizer(1.0, clip_norm=1.0))
+    assert optim.make_optimizer(1.0, clip_norm=0.0).init(big[0]) != tx.init(big[0])
     with pytest.raises(ValueError, match="period"):
-        common.restart_every(optax.scale_by_adam(), -1)
+        optim.restart_every(optax.scale_by_adam(), -1)
     # Epochs not counted yet: the restarting layout, no restart.
-    never, _ = _run(common.make_optimizer(1.0, restart_period=0), jnp.ones((4, 2)) * 3.0)
+    never, _ = _run(optim.make_optimizer(1.0, restart_period=0), jnp.ones((4, 2)) * 3.0)
     np.testing.assert_allclose(never[-1], -1.0, rtol=1e-4)
 
 
@@ -158,11 +168,15 @@ def test_no_clipping_by_default_and_clipping_as_an_option():
 def test_phase2_default_is_the_releases_recipe(data):
     # The release's opt.pickle (AIST++): batch 16, T 20, 150 epochs, no decay, lr 4e-4, KL 0.003.
     cfg = dyn_preset(data, "default")
-    assert (cfg.batch_size, cfg.frames, cfg.epochs, cfg.kl_weight) == (16, 20, 150, 0.003)
-    assert cfg.learning_rate == 4e-4 and cfg.clip_norm == 0.0 and cfg.optimizer_reset == "epoch"
+    assert (cfg.batch_size, cfg.frames, cfg.loop.epochs, cfg.kl_weight) == (16, 20, 150, 0.003)
+    assert (
+        cfg.optim.learning_rate == 4e-4
+        and cfg.optim.clip_norm == 0.0
+        and cfg.optim.optimizer_reset == "epoch"
+    )
     resolved = resolve_epochs(cfg, 1227, cfg.batch_size)
-    assert (resolved.steps_per_epoch, resolved.steps) == (77, 150 * 77)
-    settings = common.OptimizerSettings.of(resolved)
+    assert (resolved.loop.steps_per_epoch, resolved.loop.steps) == (77, 150 * 77)
+    settings = optim.OptimizerSettings.of(resolved)
     assert settings.restart_period == 77 and settings.milestones == ()
 
 

@@ -485,18 +485,17 @@ def imported(small):
 
 
 def test_import_writes_two_run_folders_of_the_imported_values(small, imported, monkeypatch):
-    from nmjax import keypoints, runs
+    from nmjax import keypoints, run_folder, runs
     from nmjax.config import DynTrainConfig, SkelTrainConfig
     from nmjax.skeleton import extract_skeleton
-    from nmjax.train import common
 
     _, pth, opt = small
     root, skel_run, dyn_run, printed = imported
     monkeypatch.chdir(root)
     assert "imported/skel" in printed and "imported/dyn" in printed
     assert sorted(p.name for p in root.iterdir() if p.name.startswith(".")) == []
-    skel = common.load_config(skel_run, SkelTrainConfig)
-    dyn = common.load_config(dyn_run, DynTrainConfig)
+    skel = run_folder.load_config(skel_run, SkelTrainConfig)
+    dyn = run_folder.load_config(dyn_run, DynTrainConfig)
     assert (skel.model.num_keypoints, skel.model.channels, skel.data.grid) == (K, 8, 32)
     assert skel.model.hourglass_channels == (8, 8, 8) and skel.data.name == "synth-arm"
     assert dyn.skel_run == "imported/skel" and dyn.frames == 6 and dyn.model.hidden == 16

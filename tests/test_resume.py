@@ -16,14 +16,14 @@ import json
 import jax
 import jax.numpy as jnp
 import pytest
-from test_train_dyn import make_fake_run, tiny_cfg
-from test_train_skel import _cfg as skel_cfg
-from test_train_skel import poison_after
+from tiny_configs import fake_run_dyn_config as tiny_cfg
+from tiny_configs import short_skel_config as skel_cfg
+from tiny_runs import poison_after
 
-from nmjax import atomic, runs
+from nmjax import atomic, run_folder, runs
 from nmjax.cli import main as nmjax_main
-from nmjax.config import resolve_epochs
-from nmjax.train import common, skel
+from nmjax.config import replace_fields, resolve_epochs
+from nmjax.train import loop, metric_log, skel
 
 TORN = "3.orbax-checkpoint-tmp-1764633600"  # what orbax leaves of a save killed before its rename
 
@@ -34,14 +34,14 @@ def _folder(run) -> dict[str, bytes]:
 
 def _kill_mid_step(run) -> None:
     """The state of `run` after a process died while saving step 3, having logged step 3."""
-    (run / common.CHECKPOINTS / TORN / "state").mkdir(parents=True)
-    (run / common.CHECKPOINTS / TORN / "state" / "partial").write_bytes(b"half written")
-    with open(run / common.METRICS_FILE, "a") as f:
+    (run / run_folder.CHECKPOINTS / TORN / "state").mkdir(parents=True)
+    (run / run_folder.CHECKPOINTS / TORN / "state" / "partial").write_bytes(b"half written")
+    with open(run / run_folder.METRICS_FILE, "a") as f:
         f.write(json.dumps({"step": 3, "train/loss": 1e9}) + "\n")
 
 
 def _train_steps(run) -> list[int]:
-    return [r["step"] for r in common.read_metrics(run) if "train/loss" in r]
+    return [r["step"] for r in metric_log.read_metrics(run) if "train/loss" in r]
 
 
 def _refused(argv, capsys, run, named: str) -> None:
@@ -50,20 +50,6 @@ def _refused(argv, capsys, run, named: str) -> None:
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert named in line
     assert _folder(run) == before  # nothing written, config.json included
-
-
-@pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    from nmjax.data import synthetic
-
-    root = tmp_path_factory.mktemp("data") / "synth-arm"
-    synthetic.generate("synth-arm", root, num_sequences=2, frames=8, points=2000, progress=False)
-    return root
-
-
-@pytest.fixture(scope="module")
-def fake_run(tmp_path_factory):
-    return make_fake_run(tmp_path_factory.mktemp("phase1") / "skel-synth-arm-20260101-000000")
 
 
 def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
@@ -82,20 +68,21 @@ def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
     empty = tmp_path / "empty"
     # A folder as the trainer makes it before its first checkpoint: the epochs resolved (the
     # two-sequence set has 1 training sequence, 1 step an epoch at B = 1).
-    common.prepare_run_dir(empty, resume=False, config=resolve_epochs(cfg, 1, 1))
+    run_folder.prepare_run_dir(empty, resume=False, config=resolve_epochs(cfg, 1, 1))
     no_checkpoint = "no complete checkpoint"
     _refused(["train-skel", "--run", str(empty), "--resume"], capsys, empty, no_checkpoint)
 
     _kill_mid_step(run)
-    config_before = json.loads((run / common.CONFIG_FILE).read_text())
+    config_before = json.loads((run / run_folder.CONFIG_FILE).read_text())
     # --steps and the log cadence may change on a resume.
-    resumed = dataclasses.replace(cfg, steps=4, log_every=2)
+    resumed = replace_fields(cfg, steps=4, log_every=2)
     summary = skel.train(resumed, run, resume=True, progress=False, finalize=False)
     assert summary["start_step"] == 2 and summary["step"] == 4
     assert _train_steps(run) == [1, 2, 4]  # the dead process's step 3 is gone, 4 logged anew
-    config = json.loads((run / common.CONFIG_FILE).read_text())
-    assert config == {**config_before, "steps": 4, "log_every": 2}
-    assert 4 in common.checkpoint_steps(run / common.CHECKPOINTS)
+    config = json.loads((run / run_folder.CONFIG_FILE).read_text())
+    changed = {**config_before["loop"], "steps": 4, "log_every": 2}
+    assert config == {**config_before, "loop": changed}
+    assert 4 in run_folder.checkpoint_steps(run)
 
 
 def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, capsys):
@@ -108,23 +95,26 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     _refused([*argv, "--set", "model.hidden=8"], capsys, run, "model.hidden")
     _refused([*argv, "--model", "vrnn"], capsys, run, "model.model")
     empty = tmp_path / "empty"
-    saved = common.load_config(run, type(cfg))  # as the trainer resolved it
-    common.prepare_run_dir(empty, resume=False, config=dataclasses.replace(saved, run=str(empty)))
+    saved = run_folder.load_config(run, type(cfg))  # as the trainer resolved it
+    run_folder.prepare_run_dir(
+        empty, resume=False, config=dataclasses.replace(saved, run=str(empty))
+    )
     no_checkpoint = "no complete checkpoint"
     _refused(["train-dyn", "--run", str(empty), "--resume"], capsys, empty, no_checkpoint)
 
     _kill_mid_step(run)
-    config_before = json.loads((run / common.CONFIG_FILE).read_text())
+    config_before = json.loads((run / run_folder.CONFIG_FILE).read_text())
     assert nmjax_main([*argv, "--set", "val_every=4"]) == 0
     assert _train_steps(run) == [1, 2, 3, 4]
-    config = json.loads((run / common.CONFIG_FILE).read_text())
-    assert config == {**config_before, "steps": 4, "val_every": 4}
+    config = json.loads((run / run_folder.CONFIG_FILE).read_text())
+    changed = {**config_before["loop"], "steps": 4, "val_every": 4}
+    assert config == {**config_before, "loop": changed}
 
     nan_run = tmp_path / "nan"
-    bad = dataclasses.replace(cfg, run=str(nan_run), steps=3)
-    with pytest.raises(common.NonFiniteLossError, match="at step 2"):
+    bad = replace_fields(cfg, run=str(nan_run), steps=3)
+    with pytest.raises(loop.NonFiniteLossError, match="at step 2"):
         runs.train_dynamics(bad, progress=False, step_hook=poison_after(1))
-    assert common.checkpoint_steps(nan_run / common.CHECKPOINTS) == [1]
+    assert run_folder.checkpoint_steps(nan_run) == [1]
     restored = runs.restore_dynamics(nan_run)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(restored))
 

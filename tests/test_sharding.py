@@ -74,7 +74,7 @@ def _script_skel(workdir: Path) -> dict:
     import jax
 
     from nmjax.data import pipeline, synthetic
-    from nmjax.train import common, parallel, skel
+    from nmjax.train import checkpoints, parallel, skel
 
     root = synthetic.generate(
         "synth-arm", workdir / "data", num_sequences=2, frames=6, points=500, progress=False
@@ -99,13 +99,13 @@ def _script_skel(workdir: Path) -> dict:
             losses.append(float(scalars["loss"]))
         results[name] = (losses, state, inputs["voxels"])
     (loss1, state1, _), (loss2, state2, voxels2) = results["single"], results["sharded"]
-    compared = _compare_states(state2, state1, "['model']", cfg.learning_rate, len(batches))
+    compared = _compare_states(state2, state1, "['model']", cfg.optim.learning_rate, len(batches))
     np.testing.assert_allclose(loss2, loss1, rtol=1e-4, atol=1e-5)
 
     # The state checkpoints and restores into its replicated placement.
-    with common.Checkpointer(workdir / "ckpt", keep=1) as ckpt:
+    with checkpoints.Checkpointer(workdir / "ckpt", keep=1) as ckpt:
         ckpt.save(2, state2)
-        _, restored = ckpt.restore(common.abstract_state(state2))
+        _, restored = ckpt.restore(checkpoints.abstract_state(state2))
     for a, b in zip(jax.tree.leaves(restored), jax.tree.leaves(state2), strict=True):
         assert a.sharding.is_equivalent_to(b.sharding, a.ndim)
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -163,7 +163,7 @@ def _script_dyn(workdir: Path) -> dict:
         results[name] = (losses, state)
         seen[name] = x = parallel.global_array(table.batch(draws.at(0)), mesh)  # the batch
     (loss1, state1), (loss2, state2) = results["single"], results["sharded"]
-    compared = _compare_states(state2, state1, "['model']", cfg.learning_rate, 2)
+    compared = _compare_states(state2, state1, "['model']", cfg.optim.learning_rate, 2)
     np.testing.assert_allclose(loss2, loss1, rtol=1e-4, atol=1e-5)
     x = seen["sharded"]
     np.testing.assert_array_equal(np.asarray(x), np.asarray(seen["single"]))
@@ -442,9 +442,12 @@ def test_two_hosts_train_like_one_host_with_two_devices(tmp_path):
         lambda i: [*argv, "--run", str(tmp_path / "two"), *hosts, "--process-id", str(i)],
         lambda i: {**env, "XLA_FLAGS": _xla_flags(devices=1)},
     )
-    from nmjax.train import common
+    from nmjax.train import metric_log
 
-    expected, got = common.read_metrics(tmp_path / "one"), common.read_metrics(tmp_path / "two")
+    expected, got = (
+        metric_log.read_metrics(tmp_path / "one"),
+        metric_log.read_metrics(tmp_path / "two"),
+    )
     assert [r["step"] for r in got] == [r["step"] for r in expected]
     for a, b in zip(got, expected, strict=True):
         assert a.keys() == b.keys()

@@ -10,7 +10,7 @@ from flax import nnx
 from tiny_runs import PARENTS, make_runs
 
 from nmjax import geometry, tasks
-from nmjax.config import DynamicsConfig
+from nmjax.config import DynamicsConfig, replace_fields
 from nmjax.data import meshes
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.skeleton import skeleton_from_parents, skin_weights
@@ -430,7 +430,7 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
 
     from nmjax import runs as run_folders
     from nmjax.config import dyn_preset
-    from nmjax.train import common
+    from nmjax.train import metric_log
 
     made = []
     crop_inputs = run_folders.crop_inputs
@@ -447,7 +447,7 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
             before_first_step.append(made[-1].crops.detected)
         return state
 
-    cfg = dataclasses.replace(
+    cfg = replace_fields(
         dyn_preset("synth-arm", "tiny"),
         skel_run=str(runs["skel"]),
         steps=4,
@@ -457,17 +457,17 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
     )
 
     def losses(run):
-        return [r["train/loss"] for r in common.read_metrics(run) if "train/loss" in r]
+        return [r["train/loss"] for r in metric_log.read_metrics(run) if "train/loss" in r]
 
     straight = dataclasses.replace(cfg, run=str(tmp_path / "straight"))
     run_folders.train_dynamics(straight, progress=False, step_hook=hook)
     crops = made[-1].crops
     assert before_first_step == [0]
-    assert 0 < crops.detected <= min(crops.num_starts, cfg.steps * cfg.batch_size)
+    assert 0 < crops.detected <= min(crops.num_starts, cfg.loop.steps * cfg.batch_size)
 
-    stopped = dataclasses.replace(cfg, run=str(tmp_path / "stopped"), steps=2)
+    stopped = replace_fields(cfg, run=str(tmp_path / "stopped"), steps=2)
     run_folders.train_dynamics(stopped, progress=False)
-    resumed = dataclasses.replace(stopped, steps=4)
+    resumed = replace_fields(stopped, steps=4)
     run_folders.train_dynamics(resumed, resume=True, progress=False)
     assert made[-1].crops.detected <= 2 * cfg.batch_size  # only the last two steps' draws
     np.testing.assert_allclose(

@@ -14,77 +14,24 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from flax import nnx
+from tiny_configs import fake_run_dyn_config as tiny_cfg
 from tiny_configs import small_skel_config
+from tiny_runs import FAKE_ORDER as ORDER
+from tiny_runs import FAKE_PARENTS as PARENTS
 from tiny_runs import spread_convolutions
 
-from nmjax import atomic, runs
+from nmjax import atomic, run_folder, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
-from nmjax.config import DynamicsConfig, dyn_preset
+from nmjax.config import DynamicsConfig, dyn_preset, replace_fields
 from nmjax.data.datasets import Sequence
 from nmjax.data.normalize import normalize_sequence
 from nmjax.data.voxelize import voxelize
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics, bone_lengths
-from nmjax.train import common, dyn
+from nmjax.train import checkpoints, dyn, metric_log
 
-PARENTS = (0, 0, 1, 2, 1)  # root 0; chain 0 -> 1 -> 2 -> 3 and a branch 1 -> 4
-ORDER = (0, 1, 2, 3, 4)
 K = len(PARENTS)
-
-
-def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues' formula."""
-    axis = axis / np.linalg.norm(axis)
-    skew = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * skew + (1 - np.cos(angle)) * skew @ skew
-
-
-def smooth_motion(frames: int, rng: np.random.Generator, offsets: np.ndarray) -> np.ndarray:
-    """(T,K,4) keypoints of the tree: sinusoidal joint angles about fixed axes (Eq. 2, NumPy)."""
-    axes = rng.normal(size=(K, 3))
-    amp, freq, phase = rng.uniform(0.3, 1.0, K), rng.uniform(0.1, 0.3, K), rng.uniform(0, 6, K)
-    out = np.zeros((frames, K, 4), np.float32)
-    for t in range(frames):
-        glob = np.zeros((K, 3, 3))
-        for k in ORDER:
-            local = rotation_about(axes[k], amp[k] * np.sin(freq[k] * t + phase[k]))
-            if PARENTS[k] == k:
-                glob[k], out[t, k, :3] = local, 0.1 * np.sin(0.05 * t)
-            else:
-                glob[k] = glob[PARENTS[k]] @ local
-                out[t, k, :3] = out[t, PARENTS[k], :3] + glob[k] @ offsets[k]
-    out[..., 3] = 0.8
-    return out
-
-
-def make_fake_run(path, seed: int = 0):
-    """A phase-1 run folder (contract C10) with skeleton.json and keypoints_{train,test}.npz."""
-    rng = np.random.default_rng(seed)
-    offsets = rng.normal(size=(K, 3))
-    offsets *= rng.uniform(0.15, 0.3, (K, 1)) / np.linalg.norm(offsets, axis=-1, keepdims=True)
-    path.mkdir(parents=True)
-    atomic.write_json(
-        path / "skeleton.json",
-        {"parents": list(PARENTS), "root": 0, "order": list(ORDER), "depth": 3},
-    )
-    for split, lengths in (("train", (30, 25, 4)), ("test", (16, 12))):
-        seqs = {f"{split}{i}": smooth_motion(n, rng, offsets) for i, n in enumerate(lengths)}
-        atomic.save_npz(path / f"keypoints_{split}.npz", **seqs)
-    return path
-
-
-def tiny_cfg(skel_run, run, **overrides):
-    """The tiny preset on a fake phase-1 run: its exported keypoints ("sequence" inputs), as the
-    fake run has no detector to run on crops."""
-    cfg = dyn_preset("synth-arm", "tiny")
-    overrides = {"inputs": "sequence", **overrides}
-    return dataclasses.replace(cfg, skel_run=str(skel_run), run=str(run), **overrides)
-
-
-@pytest.fixture(scope="module")
-def fake_run(tmp_path_factory):
-    return make_fake_run(tmp_path_factory.mktemp("phase1") / "skel-synth-arm-20260101-000000")
 
 
 def test_missing_inputs_name_the_command_to_run(tmp_path):
@@ -224,17 +171,17 @@ def test_phase2_kl_is_the_mean_of_the_per_dimension_kl(fake_run):
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=4, val_every=4, log_every=1)
     run_full, hist_full = runs.train_dynamics(cfg, progress=False)
-    half = dataclasses.replace(cfg, run=str(tmp_path / "half"), steps=2)
+    half = replace_fields(cfg, run=str(tmp_path / "half"), steps=2)
     runs.train_dynamics(half, progress=False)
-    resumed = dataclasses.replace(half, steps=4)
+    resumed = replace_fields(half, steps=4)
     run_half, hist_half = runs.train_dynamics(resumed, resume=True, progress=False)
     full_state = nnx.state(runs.restore_dynamics(run_full))
     half_state = nnx.state(runs.restore_dynamics(run_half))
     for a, b in zip(jax.tree.leaves(full_state), jax.tree.leaves(half_state), strict=True):
         np.testing.assert_array_equal(a, b)
     assert hist_half[-1] == hist_full[-1]
-    records = [r for r in common.read_metrics(run_half) if "train/loss" in r]
-    expected = [r for r in common.read_metrics(run_full) if "train/loss" in r]
+    records = [r for r in metric_log.read_metrics(run_half) if "train/loss" in r]
+    expected = [r for r in metric_log.read_metrics(run_full) if "train/loss" in r]
     assert [r["step"] for r in records] == [1, 2, 3, 4]
     assert [r["train/loss"] for r in records] == [r["train/loss"] for r in expected]
 
@@ -247,7 +194,7 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
     assert "final validation" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
     assert saved["skel_run"] == str(fake_run) and saved["model"]["model"] == "nm"
-    records = common.read_metrics(run)
+    records = metric_log.read_metrics(run)
     val = [r for r in records if "val/recon" in r]
     assert [r["step"] for r in val] == [5, 10]
     assert all(np.isfinite(v) for r in records for v in r.values())
@@ -277,12 +224,12 @@ def test_command_line_options_map_onto_the_config():
     cfg = dyn_config(
         parse_dyn(["--data", "synth-hand", "--model", "vrnn", "--preset", "cpu", "--steps", "7"])
     )
-    assert cfg.model.model == "vrnn" and cfg.steps == 7
+    assert cfg.model.model == "vrnn" and cfg.loop.steps == 7
     assert cfg.model.hidden == dyn_preset("synth-hand", "cpu").model.hidden
     # --steps on the default preset (in epochs) turns the run into a step count.
     cfg = dyn_config(parse_dyn(["--steps", "50"]))
-    assert (cfg.epochs, cfg.steps, cfg.optimizer_reset) == (0, 50, "epoch")
-    assert dyn_config(parse_dyn([])).epochs == 150
+    assert (cfg.loop.epochs, cfg.loop.steps, cfg.optim.optimizer_reset) == (0, 50, "epoch")
+    assert dyn_config(parse_dyn([])).loop.epochs == 150
     cfg = dyn_config(parse_dyn(["--set", "kl_weight=1e-5", "--set", "model.latent=8"]))
     assert cfg.kl_weight == 1e-5 and cfg.model.latent == 8 and cfg.model.model == "nm"
     with pytest.raises(ValueError, match="no_such_field"):  # an unknown field is named
@@ -391,8 +338,8 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     assert "no config.json" in capsys.readouterr().err
     assert not (tmp_path / "w").exists()
 
-    imported = common.prepare_run_dir(tmp_path / "imported", resume=False, config=tuned)
-    with common.Checkpointer(imported / "checkpoints", 1) as ckpt:
+    imported = run_folder.prepare_run_dir(tmp_path / "imported", resume=False, config=tuned)
+    with checkpoints.Checkpointer(imported / "checkpoints", 1) as ckpt:
         ckpt.save(0, seen[0])  # what `nmjax import-release` writes: weights, untouched Adam
     assert nmjax_main(["train-dyn", "--run", str(imported), "--resume"]) == 2
     lines = capsys.readouterr().err.strip().splitlines()

@@ -3,7 +3,6 @@ NaN stop, bad input, run-folder artefacts (nmjax.runs)."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import subprocess
@@ -16,23 +15,13 @@ import numpy as np
 import optax
 import pytest
 from flax import nnx
-from tiny_configs import small_arm_data, small_skel_config
+from tiny_configs import short_skel_config as _cfg
+from tiny_runs import poison_after
 
-from nmjax import config, runs
+from nmjax import config, run_folder, runs
 from nmjax.cli import main as nmjax_main
-from nmjax.config import skel_preset
-from nmjax.train import common, parallel, skel
-
-
-@pytest.fixture(scope="module")
-def data_root(tmp_path_factory):
-    return small_arm_data(tmp_path_factory.mktemp("data") / "synth-arm")
-
-
-def _cfg(root, **changes):
-    """`tiny_configs.small_skel_config` (G=8, C=4, K=4, T=3, B=1) for 6 steps."""
-    run = dict(steps=6, lr_milestones=(4, 5), log_every=1, val_every=3, val_batches=1, ckpt_every=1)
-    return small_skel_config(root, **(run | changes))
+from nmjax.config import replace_fields, skel_preset
+from nmjax.train import checkpoints, metric_log, parallel, skel
 
 
 def _leaves(state):
@@ -43,7 +32,7 @@ def _restored_equal(tmp_path, abstract, step):
     """The states of the "straight" and "resumed" runs' checkpoints at `step`, checked equal."""
     restored = {}
     for name in ("straight", "resumed"):
-        with common.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
+        with checkpoints.Checkpointer(tmp_path / name / "checkpoints", keep=3) as ckpt:
             restored[name] = ckpt.restore(abstract, step=step)[1]
     for a, b in zip(_leaves(restored["straight"]), _leaves(restored["resumed"]), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
@@ -90,7 +79,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     straight = skel.train(cfg, tmp_path / "straight", progress=False)
     runs.finish_phase1(tmp_path / "straight")
     first = skel.train(
-        dataclasses.replace(cfg, steps=3), tmp_path / "resumed", progress=False, finalize=False
+        replace_fields(cfg, steps=3), tmp_path / "resumed", progress=False, finalize=False
     )
     assert first["step"] == 3
     resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
@@ -100,7 +89,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     _restored_equal(tmp_path, skel.abstract_state(state), step=6)
     assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
     # The resumed run's log reads like the straight one's: each step once, in order.
-    records = common.read_metrics(tmp_path / "resumed")
+    records = metric_log.read_metrics(tmp_path / "resumed")
     train_steps = [r["step"] for r in records if "train/loss" in r]
     assert train_steps == [1, 2, 3, 4, 5, 6]
     # The fusion weights ride with the training scalars (they start near 0, the bias at 0, and
@@ -112,7 +101,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     # Adam restarted at the epoch boundaries (2 training sequences at B = 1: steps 2 and 4), so
     # the resumed run crossed one (step 4) after it resumed at step 3, and matched regardless.
     saved = json.loads((tmp_path / "resumed" / "config.json").read_text())
-    assert saved["optimizer_reset"] == "epoch" and saved["steps_per_epoch"] == 2
+    assert saved["optim"]["optimizer_reset"] == "epoch" and saved["loop"]["steps_per_epoch"] == 2
 
     run = tmp_path / "straight"
     k, n, g = cfg.model.num_keypoints, cfg.model.num_affinity, cfg.model.grid
@@ -120,7 +109,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert affinity.shape == (n, k, k) and affinity.dtype == np.float32
     np.testing.assert_allclose(affinity.sum(-1), 1.0, atol=1e-5)
     stats = np.load(run / "keypoint_stats.npz")
-    assert sorted(stats.files) == sorted(common.STATS_KEYS)  # what nmjax.runs reads
+    assert sorted(stats.files) == sorted(run_folder.STATS_KEYS)  # what nmjax.runs reads
     assert stats["intensities"].shape == (k,)
     assert stats["rest_positions"].shape == (k, 3)
     assert stats["example_voxels"].shape == (g, g, g)
@@ -132,7 +121,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert list((run / "figures").glob("keypoints_*.png"))
     assert list((run / "tb").iterdir())
     saved = json.loads((run / "config.json").read_text())
-    assert saved["model"]["channels"] == 4 and saved["steps"] == 6
+    assert saved["model"]["channels"] == 4 and saved["loop"]["steps"] == 6
     for split, count in (("train", 2), ("test", 1)):
         with np.load(run / f"keypoints_{split}.npz") as archive:
             assert len(archive.files) == count
@@ -153,7 +142,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
 def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, tmp_path):
     cfg = _cfg(data_root, ema_decay=0.5)
     straight = skel.train(cfg, tmp_path / "straight", progress=False, finalize=False)
-    skel.train(dataclasses.replace(cfg, steps=3), tmp_path / "resumed", progress=False)
+    skel.train(replace_fields(cfg, steps=3), tmp_path / "resumed", progress=False)
     resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
     graphdef, state = skel.build(cfg)
     assert set(state) == {"model", "opt", "ema"}
@@ -178,27 +167,13 @@ def test_sequence_windows_pad_with_last_frame():
     np.testing.assert_array_equal(windows[:, :, 0, 0, 0].ravel(), [0, 1, 2, 3, 4, 5, 6, 6, 6])
 
 
-def poison_after(poisoned_step):
-    """A trainer's `step_hook` that makes every float of the state NaN once step
-    `poisoned_step` is done. The integer step counts stay integers, so the poisoned state has the
-    types of the clean one and the compiled step is reused, not compiled again."""
-
-    def nan(x):
-        return x * jnp.nan if jnp.issubdtype(x.dtype, jnp.floating) else x
-
-    def hook(step, state):
-        return jax.tree.map(nan, state) if step == poisoned_step else state
-
-    return hook
-
-
 def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(three_sequences, tmp_path):
     cfg = _cfg(three_sequences)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
         skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
     graphdef, state = skel.build(cfg)
-    with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
+    with checkpoints.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.latest_step() == 2
         _, good = ckpt.restore(skel.abstract_state(state))
     assert all(np.all(np.isfinite(x)) for x in _leaves(good))
@@ -213,8 +188,8 @@ def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
         skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
-    assert common.checkpoint_steps(tmp_path / "run" / "checkpoints") == [2]
-    assert not (tmp_path / "run" / common.METRICS_FILE).exists()  # nothing logged before 4
+    assert run_folder.checkpoint_steps(tmp_path / "run") == [2]
+    assert not (tmp_path / "run" / run_folder.METRICS_FILE).exists()  # nothing logged before 4
 
 
 def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences, tmp_path):
@@ -229,7 +204,7 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences,
     assert not list((tmp_path / "short").glob("keypoints_*.npz"))
     assert summary["step"] == 1 and summary["stopped_by_time_limit"] is True
     assert "val/loss" in summary
-    with common.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
+    with checkpoints.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.all_steps() == [1]
     assert (tmp_path / "run" / "skeleton.json").is_file()
     # The exporter can read another copy of the dataset and write elsewhere: same keypoints.
@@ -285,7 +260,7 @@ def test_overrides_parse_types():
         ],
     )
     assert cfg.model.channels == 16 and cfg.weights.vol == 0.5
-    assert cfg.lr_milestones == (3, 7) and cfg.weights.intensity_weighted is True
+    assert cfg.optim.lr_milestones == (3, 7) and cfg.weights.intensity_weighted is True
 
 
 def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(three_sequences, tmp_path):
@@ -327,18 +302,18 @@ def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(three_sequen
 
 
 def test_fit_schedule_scales_steps_and_milestones_to_the_budget():
-    cfg = dataclasses.replace(skel_preset("synth-arm", "tiny"), steps=20, lr_milestones=(10, 15))
+    cfg = replace_fields(skel_preset("synth-arm", "tiny"), steps=20, lr_milestones=(10, 15))
     # 15 s at 1 s per step plus 20% overhead: 12 steps, the milestones at half and 3/4 of them.
     fitted = config.fit_schedule(cfg, 1.0, 0.25, overhead=0.2)
-    assert (fitted.steps, fitted.lr_milestones) == (12, (6, 9))
-    assert fitted.time_limit_minutes == pytest.approx(0.25)
+    assert (fitted.loop.steps, fitted.optim.lr_milestones) == (12, (6, 9))
+    assert fitted.loop.time_limit_minutes == pytest.approx(0.25)
     # What the timing spent comes off the budget, for the steps and the stop alike.
     fitted = config.fit_schedule(cfg, 1.0, 0.25, spent_seconds=3.0, overhead=0.2)
-    assert (fitted.steps, fitted.lr_milestones) == (10, (5, 8))
-    assert fitted.time_limit_minutes == pytest.approx(0.2)
+    assert (fitted.loop.steps, fitted.optim.lr_milestones) == (10, (5, 8))
+    assert fitted.loop.time_limit_minutes == pytest.approx(0.2)
     assert fitted.model == cfg.model and fitted.weights == cfg.weights
     # A faster step than the preset assumed buys more steps than the preset's.
-    assert config.fit_schedule(cfg, 0.5, 60.0, overhead=0.0).steps == 7200
+    assert config.fit_schedule(cfg, 0.5, 60.0, overhead=0.0).loop.steps == 7200
     with pytest.raises(ValueError, match="fit only 0 steps"):
         config.fit_schedule(cfg, 10.0, 0.1)
     with pytest.raises(ValueError, match="seconds_per_step > 0"):
@@ -368,9 +343,9 @@ def test_fit_minutes_times_the_step_and_trains_the_fitted_schedule(
     assert nmjax_main([*argv, "--fit-minutes", "22"]) == 0
     # 1,320 s / (100 s x 1.08) = 12.2 steps; the milestones 10 and 15 of 20 scale with them.
     saved = json.loads((run / "config.json").read_text())
-    assert (saved["steps"], tuple(saved["lr_milestones"])) == (12, (6, 9))
-    assert 21.5 < saved["time_limit_minutes"] <= 22.0
-    assert len(timed) == 1 and timed[0].steps == 20 and timed[0].model.grid == 8
+    assert (saved["loop"]["steps"], tuple(saved["optim"]["lr_milestones"])) == (12, (6, 9))
+    assert 21.5 < saved["loop"]["time_limit_minutes"] <= 22.0
+    assert len(timed) == 1 and timed[0].loop.steps == 20 and timed[0].model.grid == 8
     assert "12 steps" in capsys.readouterr().err
     assert (run / "checkpoints" / "12").exists()
     # The schedule is fixed at the start: with --steps or --resume the option is refused.
@@ -388,11 +363,11 @@ def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp
     cfg = _cfg(three_sequences, steps=2)
     source = tmp_path / "source"
     skel.train(cfg, source, progress=False, finalize=False)
-    tuned = dataclasses.replace(cfg, steps=1, init_from=str(source))
+    tuned = replace_fields(cfg, steps=1, init_from=str(source))
     skel.train(tuned, tmp_path / "tuned", progress=False, finalize=False)
 
     def first_loss(run):
-        return next(r["train/loss"] for r in common.read_metrics(run) if "train/loss" in r)
+        return next(r["train/loss"] for r in metric_log.read_metrics(run) if "train/loss" in r)
 
     # The source detector's loss (Eq. 23, by the trainer's own compiled validation step) on the
     # batch of the first step: the same data and seed give the same first crop.
@@ -409,7 +384,7 @@ def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp
     assert first_loss(tmp_path / "tuned") == pytest.approx(expected, rel=1e-5)
     # The source's own first step, from the seed's initialisation, saw another loss.
     assert first_loss(source) != pytest.approx(expected, rel=1e-5)
-    with common.Checkpointer(tmp_path / "tuned" / "checkpoints", keep=3) as ckpt:
+    with checkpoints.Checkpointer(tmp_path / "tuned" / "checkpoints", keep=3) as ckpt:
         _, restored = ckpt.restore(skel.abstract_state(state), step=1)
     counts = [
         int(x)

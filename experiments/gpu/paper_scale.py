@@ -695,8 +695,8 @@ def run_summary(run: Path, time_limit_s: float, wall_s: float) -> dict[str, Any]
         "time_limit_s": time_limit_s,
         "wall_s": wall_s,
         "steps": last_step,
-        "configured_steps": config["steps"],
-        "stopped_by_budget": last_step < config["steps"],
+        "configured_steps": config["loop"]["steps"],
+        "stopped_by_budget": last_step < config["loop"]["steps"],
         # the first interval includes compilation; the later ones are the training rate
         "steps_per_s_after_first_log": rates[1:],
         "shape": {

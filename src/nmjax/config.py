@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-from collections.abc import Sequence
+import json
+import types
+import typing
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -196,42 +199,73 @@ class DetectorConfig:
 
 
 @dataclass(frozen=True)
-class SkelTrainConfig:
-    """Phase 1: keypoint detector + affinity (Eq. 23)."""
+class OptimConfig:
+    """The optimiser both phases train with (`nmjax.train.optim`): Adam with a piecewise-constant
+    learning rate, optional clipping, Adam's restarts and an optional weight average.
 
-    data: DataConfig = field(default_factory=DataConfig)
-    model: DetectorConfig = field(default_factory=DetectorConfig)
-    weights: LossWeights = field(default_factory=LossWeights)
-    # The run's length, as the release counts it (DESIGN 6b). epochs > 0: that many epochs of
-    # `steps_per_epoch` steps, the learning rate decayed at `decay_epochs`; `steps_per_epoch`,
-    # `steps` and `lr_milestones` are filled in from the training set when the run starts
-    # (`resolve_epochs`) and config.json records them. epochs = 0: `steps` and `lr_milestones`
-    # as given (a step count instead of epochs).
-    epochs: int = 200
-    decay_epochs: tuple[int, ...] = (60, 140)
-    steps_per_epoch: int = 0  # 0: not resolved yet (ceil(training sequences / batch))
-    steps: int = 0
-    learning_rate: float = 4e-4  # the release's, for every dataset
+    The release's recipe (DESIGN 6b) is Adam at 4e-4 for every dataset and phase, created anew
+    every epoch, no clipping, the rate 0.25x then 0.1x of the initial from each decay epoch
+    (phase 1; phase 2 does not decay).
+    """
+
+    learning_rate: float = 4e-4
+    # Epochs at which the rate becomes lr_decay[0]x, then lr_decay[1]x the initial one; turned
+    # into `lr_milestones` (steps) when the epochs are resolved (`resolve_epochs`).
+    decay_epochs: tuple[int, ...] = ()
     lr_milestones: tuple[int, ...] = ()  # steps; scaled by lr_decay
-    lr_decay: tuple[float, float] = (0.25, 0.1)
+    lr_decay: tuple[float, ...] = (0.25, 0.1)
     clip_norm: float = 0.0  # global-norm clipping of every step; 0: none (the release's)
     # "epoch": Adam's state (moments and bias correction) restarts at every epoch boundary, as
     # the release creates its optimizer anew each epoch; "never": one state for the whole run.
     optimizer_reset: str = "epoch"
     # > 0: also keep an exponential moving average of the weights with this decay per step
-    # (bias-corrected), and validate, checkpoint-select and export the averaged detector; 0 (the
+    # (bias-corrected), and validate, checkpoint-select and export the averaged model; 0 (the
     # paper): the weights as trained.
     ema_decay: float = 0.0
-    seed: int = 0
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """How long a run trains and what the one training loop (`nmjax.train.loop`) reports.
+
+    The run's length is counted as the release counts it (DESIGN 6b). epochs > 0: that many
+    epochs of `steps_per_epoch` steps; `steps_per_epoch`, `steps` (and the optimiser's
+    `lr_milestones`) are filled in from the training set when the run starts (`resolve_epochs`)
+    and config.json records them. epochs = 0: `steps` as given (a step count instead of epochs).
+    """
+
+    epochs: int = 0
+    steps_per_epoch: int = 0  # 0: not resolved yet (ceil(training sequences / batch))
+    steps: int = 0
     log_every: int = 50
     val_every: int = 500
-    val_batches: int = 4
     ckpt_every: int = 500
     keep_checkpoints: int = 3
     # Wall-clock limit of one invocation of the trainer, in minutes (0: none). Reached, the run
     # stops after the current step as if it were the last one (validation, checkpoint,
     # artefacts); fixed-budget comparisons (experiments/phase1_study.py) use it.
     time_limit_minutes: float = 0.0
+
+
+# The groups both train configurations hold. Their fields were top-level fields of the train
+# configurations before they were grouped: a config.json of that time (flat) is read into them
+# (`config_from_dict`), and `--set NAME=VALUE` / `replace_fields` still take the bare names.
+SHARED_GROUPS = ("optim", "loop")
+
+
+@dataclass(frozen=True)
+class SkelTrainConfig:
+    """Phase 1: keypoint detector + affinity (Eq. 23)."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    model: DetectorConfig = field(default_factory=DetectorConfig)
+    weights: LossWeights = field(default_factory=LossWeights)
+    # The release's phase-1 recipe: the default dataset's decay epochs (`skel_preset` sets each
+    # dataset's) and 200 epochs.
+    optim: OptimConfig = field(default_factory=lambda: OptimConfig(decay_epochs=(60, 140)))
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=200))
+    seed: int = 0
+    val_batches: int = 4
     run: str | None = None  # default: runs/skel-<data>-<timestamp>
     # A run whose trained detector this one starts from (fine-tuning, `--init-from`), with a
     # fresh optimizer; "": the initialisation of `model.init` at `seed`.
@@ -266,23 +300,15 @@ class DynTrainConfig:
     frames: int = 20  # T_dyna
     batch_size: int = 16
     # The release's phase-2 recipe (its opt.pickle for AIST++: 150 epochs, no decay, lr 4e-4, no
-    # clipping, Adam created anew every epoch); epochs, steps_per_epoch and steps as in phase 1
-    # (`SkelTrainConfig`), an epoch ceil(training sequences / batch_size) steps.
-    epochs: int = 150
-    steps_per_epoch: int = 0
-    steps: int = 0
-    learning_rate: float = 4e-4
-    clip_norm: float = 0.0
-    optimizer_reset: str = "epoch"
+    # clipping, Adam created anew every epoch), an epoch ceil(training sequences / batch_size)
+    # steps.
+    optim: OptimConfig = field(default_factory=OptimConfig)
+    loop: LoopConfig = field(default_factory=lambda: LoopConfig(epochs=150))
     # Weight of the KL, itself the mean over batch, time and latent dimension of the
     # per-dimension KL (the release's reduction); 0.003 is the release's, the paper's Table 3
     # prints 1.0.
     kl_weight: float = 0.003
     seed: int = 0
-    log_every: int = 50
-    val_every: int = 500
-    ckpt_every: int = 500
-    keep_checkpoints: int = 3
     run: str | None = None
     # A phase-2 run whose trained model this one starts from (fine-tuning, `--init-from`), with
     # a fresh optimizer; "": the initialisation at `seed`.
@@ -371,8 +397,8 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
         data=data_cfg,
         model=model,
         weights=weights,
-        epochs=spec.epochs,
-        decay_epochs=spec.decay_epochs,
+        optim=OptimConfig(decay_epochs=spec.decay_epochs),
+        loop=LoopConfig(epochs=spec.epochs),
     )
     if preset == "cpu":
         # Sized for 2 CPU cores: 12 frames of 32^3 per step instead of 30 of 64^3.
@@ -380,16 +406,15 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
             cfg,
             data=dataclasses.replace(data_cfg, grid=32, frames=6, batch_size=2),
             model=dataclasses.replace(model, grid=32, channels=16, hourglass_channels=(16, 24, 32)),
-            epochs=0,
-            steps=CPU_STEPS,
-            lr_milestones=CPU_LR_MILESTONES,
-            learning_rate=1e-3,
-            clip_norm=1.0,
-            optimizer_reset="never",
-            log_every=25,
-            val_every=200,
+            optim=dataclasses.replace(
+                cfg.optim,
+                lr_milestones=CPU_LR_MILESTONES,
+                learning_rate=1e-3,
+                clip_norm=1.0,
+                optimizer_reset="never",
+            ),
+            loop=LoopConfig(epochs=0, steps=CPU_STEPS, log_every=25, val_every=200, ckpt_every=200),
             val_batches=8,
-            ckpt_every=200,
         )
         cfg = apply_overrides(cfg, CPU_BODY_CHANGES.get(data, ()))
     elif preset == "tiny":
@@ -403,13 +428,9 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
                 channels=8,
                 hourglass_channels=(8, 8, 8),
             ),
-            epochs=0,
-            steps=20,
-            lr_milestones=(10, 15),
-            log_every=5,
-            val_every=10,
+            optim=dataclasses.replace(cfg.optim, lr_milestones=(10, 15)),
+            loop=LoopConfig(epochs=0, steps=20, log_every=5, val_every=10, ckpt_every=10),
             val_batches=1,
-            ckpt_every=10,
         )
     return cfg
 
@@ -431,8 +452,8 @@ def steps_per_epoch(num_sequences: int, batch_size: int) -> int:
 
 
 def resolve_epochs(cfg: Any, num_sequences: int, batch_size: int) -> Any:
-    """`cfg` (phase 1 or 2) with `steps_per_epoch` from the training set and, for a schedule in
-    epochs that is not resolved yet, `steps` (and phase 1's `lr_milestones`) from its epochs.
+    """`cfg` (phase 1 or 2) with `loop.steps_per_epoch` from the training set and, for a schedule
+    in epochs that is not resolved yet, `loop.steps` and `optim.lr_milestones` from its epochs.
 
     A configuration already resolved (a resumed run's config.json) keeps its steps, which
     `--steps` may have changed; its steps per epoch must still be those of the data.
@@ -441,35 +462,37 @@ def resolve_epochs(cfg: Any, num_sequences: int, batch_size: int) -> Any:
       ValueError: the stored steps_per_epoch differs from what the data gives now.
     """
     per_epoch = steps_per_epoch(num_sequences, batch_size)
-    if cfg.steps_per_epoch:
-        if cfg.steps_per_epoch != per_epoch:
+    loop = cfg.loop
+    if loop.steps_per_epoch:
+        if loop.steps_per_epoch != per_epoch:
             raise ValueError(
-                f"the run was configured with {cfg.steps_per_epoch} steps per epoch, but "
+                f"the run was configured with {loop.steps_per_epoch} steps per epoch, but "
                 f"{num_sequences} training sequences in batches of {batch_size} give "
                 f"{per_epoch}: the dataset changed; start a new run"
             )
         return cfg
-    cfg = dataclasses.replace(cfg, steps_per_epoch=per_epoch)
-    if cfg.epochs <= 0:
-        return cfg
-    cfg = dataclasses.replace(cfg, steps=cfg.epochs * per_epoch)
-    if hasattr(cfg, "lr_milestones"):
-        cfg = dataclasses.replace(cfg, lr_milestones=tuple(e * per_epoch for e in cfg.decay_epochs))
-    return cfg
+    loop = dataclasses.replace(loop, steps_per_epoch=per_epoch)
+    if loop.epochs <= 0:
+        return dataclasses.replace(cfg, loop=loop)
+    loop = dataclasses.replace(loop, steps=loop.epochs * per_epoch)
+    milestones = tuple(e * per_epoch for e in cfg.optim.decay_epochs)
+    return dataclasses.replace(
+        cfg, loop=loop, optim=dataclasses.replace(cfg.optim, lr_milestones=milestones)
+    )
 
 
 def milestone_fractions(cfg: SkelTrainConfig) -> tuple[float, ...]:
     """Where the learning-rate decays sit, as fractions of the run."""
-    if cfg.epochs > 0:
-        return tuple(e / cfg.epochs for e in cfg.decay_epochs)
-    return tuple(m / cfg.steps for m in cfg.lr_milestones)
+    if cfg.loop.epochs > 0:
+        return tuple(e / cfg.loop.epochs for e in cfg.optim.decay_epochs)
+    return tuple(m / cfg.loop.steps for m in cfg.optim.lr_milestones)
 
 
 def with_steps(cfg: SkelTrainConfig, steps: int) -> SkelTrainConfig:
     """`cfg` as a run of `steps` optimizer steps (epochs = 0), each learning-rate decay at the
     fraction of the run where `cfg` had it (`--steps`, `--fit-minutes`)."""
     milestones = tuple(round(f * steps) for f in milestone_fractions(cfg))
-    return dataclasses.replace(cfg, epochs=0, steps=steps, lr_milestones=milestones)
+    return replace_fields(cfg, epochs=0, steps=steps, lr_milestones=milestones)
 
 
 # Share of a fitted budget kept for what is not a train step: compiling, validations, figures,
@@ -511,7 +534,7 @@ def fit_schedule(
         )
     left = 60.0 * minutes - spent_seconds
     steps = int(max(left, 0.0) // (seconds_per_step * (1.0 + overhead)))
-    milestones = with_steps(cfg, steps).lr_milestones if steps > 0 else ()
+    milestones = with_steps(cfg, steps).optim.lr_milestones if steps > 0 else ()
     if (
         steps < len(milestones) + 2
         or len(set(milestones)) < len(milestones)
@@ -521,7 +544,7 @@ def fit_schedule(
             f"{minutes} minutes fit only {steps} steps of {seconds_per_step:.3g} s (after "
             f"{spent_seconds:.0f} s spent measuring); give more minutes or a smaller preset"
         )
-    return dataclasses.replace(with_steps(cfg, steps), time_limit_minutes=left / 60.0)
+    return replace_fields(with_steps(cfg, steps), time_limit_minutes=left / 60.0)
 
 
 def dyn_preset(data: str = "synth-hand", preset: str = "default") -> DynTrainConfig:
@@ -536,8 +559,7 @@ def dyn_preset(data: str = "synth-hand", preset: str = "default") -> DynTrainCon
         cfg = dataclasses.replace(
             cfg,
             model=DynamicsConfig(latent=32, hidden=128, mlp=64),
-            epochs=0,
-            steps=3_000,
+            loop=dataclasses.replace(cfg.loop, epochs=0, steps=3_000),
             # The release's KL weight (0.003) stays: 0.001 measured worse on both validation
             # columns (experiments/results/dynamics_fix.md).
         )
@@ -547,13 +569,104 @@ def dyn_preset(data: str = "synth-hand", preset: str = "default") -> DynTrainCon
             model=DynamicsConfig(latent=4, hidden=16, mlp=16, posterior_samples=3),
             frames=6,
             batch_size=4,
-            epochs=0,
-            steps=10,
-            log_every=5,
-            val_every=5,
-            ckpt_every=5,
+            loop=LoopConfig(epochs=0, steps=10, log_every=5, val_every=5, ckpt_every=5),
         )
     return cfg
+
+
+# --- reading and writing a configuration (config.json) -----------------------------------------
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """`dataclasses.asdict`, with tuples turned into lists so that it round-trips through JSON."""
+    return json.loads(json.dumps(dataclasses.asdict(config)))
+
+
+def flatten_config(config: Any) -> dict[str, Any]:
+    """{dotted field: value} of a configuration, as `config_to_dict` writes the values (the names
+    that `--set` and the resume and fine-tuning checks use)."""
+
+    def walk(tree: Mapping[str, Any], prefix: str) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key, value in tree.items():
+            if isinstance(value, Mapping):
+                out.update(walk(value, f"{prefix}{key}."))
+            else:
+                out[f"{prefix}{key}"] = value
+        return out
+
+    return walk(config_to_dict(config), "")
+
+
+def config_from_dict(
+    cls: type, data: Mapping[str, Any], *, source: str = "config", base: Any = None
+) -> Any:
+    """Rebuilds the (nested, frozen) dataclass `cls` from `config_to_dict` output.
+
+    A key missing from `data` takes its value in `base` (default: the dataclass default), and so
+    does a missing key of a nested group: a phase's groups have the phase's defaults (phase 2's
+    `loop.epochs` is 150 where phase 1's is 200). A config.json written before the shared groups
+    existed (`SHARED_GROUPS`: `steps`, `learning_rate`, ... at the top level) is read into them.
+    Unknown keys are refused so that a stale config file is noticed.
+    """
+    data = _nest_shared_fields(cls, data)
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(
+            f"{source}: unknown field(s) {unknown} for {cls.__name__}; "
+            f"valid fields: {sorted(names)}"
+        )
+    base = cls() if base is None else base
+    kwargs = {}
+    for name, value in data.items():
+        where = f"{source}.{name}"
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint) and isinstance(hint, type):
+            if not isinstance(value, Mapping):
+                raise ValueError(f"{where}: expected a mapping for {hint.__name__}, got {value!r}")
+            kwargs[name] = config_from_dict(hint, value, source=where, base=getattr(base, name))
+        else:
+            kwargs[name] = _convert(hint, value)
+    return dataclasses.replace(base, **kwargs)
+
+
+def _group_of(cls: type, name: str) -> str | None:
+    """The shared group (`SHARED_GROUPS`) of `cls` that has a field `name`, if any."""
+    hints = typing.get_type_hints(cls)
+    for group in SHARED_GROUPS:
+        if group in hints and name in _field_names(hints[group]):
+            return group
+    return None
+
+
+def _nest_shared_fields(cls: type, data: Mapping[str, Any]) -> dict[str, Any]:
+    """`data` with every top-level key that names a field of one of `cls`'s shared groups moved
+    into that group (the flat layout of older config.json files)."""
+    if not dataclasses.is_dataclass(cls) or not any(
+        f.name in SHARED_GROUPS for f in dataclasses.fields(cls)
+    ):
+        return dict(data)
+    own = {f.name for f in dataclasses.fields(cls)}
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        group = None if key in own else _group_of(cls, key)
+        if group is None:
+            out[key] = value
+        else:
+            out.setdefault(group, {})
+            out[group] = {**out[group], key: value}
+    return out
+
+
+def _convert(hint: Any, value: Any) -> Any:
+    origin = typing.get_origin(hint)
+    if origin is tuple and isinstance(value, list | tuple):
+        return tuple(value)
+    if origin in (typing.Union, types.UnionType) and isinstance(value, list):
+        return tuple(value)
+    return value
 
 
 # --- command-line overrides (`--set FIELD=VALUE`) --------------------------------------------
@@ -586,7 +699,8 @@ def add_override_argument(parser: argparse.ArgumentParser, help: str) -> None:
 
 
 def apply_overrides(cfg: Any, assignments: Sequence[str]) -> Any:
-    """Returns `cfg` with dotted-path overrides like "model.channels=16" or "lr_decay=0.5,0.1"."""
+    """Returns `cfg` with dotted-path overrides like "model.channels=16" or "lr_decay=0.5,0.1"
+    (a shared group's field by its bare name, `SHARED_GROUPS`, or dotted: "optim.lr_decay")."""
     for item in assignments:
         if "=" not in item:
             raise ValueError(f"--set expects FIELD=VALUE (e.g. model.channels=16), got {item!r}")
@@ -595,8 +709,28 @@ def apply_overrides(cfg: Any, assignments: Sequence[str]) -> Any:
     return cfg
 
 
+def replace_fields(cfg: Any, **changes: Any) -> Any:
+    """`dataclasses.replace(cfg, ...)` that also takes the shared groups' fields by their bare
+    names (`steps=4, learning_rate=1e-3` for `loop.steps`, `optim.learning_rate`), as `--set`
+    does: the programmatic form of `apply_overrides`, with values instead of texts."""
+    for name, value in changes.items():
+        group = _group_of(type(cfg), name) if name not in _field_names(cfg) else None
+        if group is None:
+            cfg = dataclasses.replace(cfg, **{name: value})
+        else:
+            inner = dataclasses.replace(getattr(cfg, group), **{name: value})
+            cfg = dataclasses.replace(cfg, **{group: inner})
+    return cfg
+
+
+def _field_names(obj: Any) -> set[str]:
+    return {f.name for f in dataclasses.fields(obj)}
+
+
 def _replace_path(obj: Any, path: list[str], text: str, key: str) -> Any:
-    names = {f.name for f in dataclasses.fields(obj)}
+    names = _field_names(obj)
+    if path[0] not in names and (group := _group_of(type(obj), path[0])) is not None:
+        path = [group, *path]  # a shared group's field by its bare (pre-group) name
     if path[0] not in names:
         raise ValueError(
             f"--set {key}: {type(obj).__name__} has no field {path[0]!r}; fields: {sorted(names)}"

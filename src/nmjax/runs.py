@@ -1,12 +1,9 @@
-"""The run folder contract (C10) in one place: what a phase-1 and a phase-2 run folder hold, the
-readers of each file, and phase-1 inference over whole sequences.
+"""Trained models out of run folders: the phase-1 detector (`Detector`) and its inference over
+whole sequences and clips, skeleton extraction (`extract_run_skeleton`), the keypoint export
+(`export_keypoints`), the phase-2 model (`restore_dynamics`).
 
-A phase-1 run (`nmjax train-skel`) holds config.json, checkpoints/, metrics.jsonl, affinity.npy
-and keypoint_stats.npz (written by the trainer), skeleton.json (`extract_run_skeleton`) and
-keypoints_{train,test}.npz (`export_keypoints`; one (S, K, 4) array per sequence). A phase-2 run
-(`nmjax train-dyn`) holds config.json, whose `skel_run` names the phase-1 run it was trained on,
-checkpoints/ and metrics.jsonl. The file names are `nmjax.train.common`'s, which the trainers
-write by.
+What a run folder holds, its file names and the readers and writers of each file are
+`nmjax.run_folder`'s (contract C10).
 
 Phase 2 reads its keypoints in one of two ways (`DynTrainConfig.inputs`): "crop", the release's,
 runs the phase-1 detector on every clip normalised with its own bounding box (`clip_voxels`,
@@ -21,7 +18,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import os
 import sys
 from pathlib import Path
@@ -32,47 +28,46 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic
+from nmjax import run_folder
 from nmjax.config import DynTrainConfig, SkelTrainConfig, resolve_epochs
+from nmjax.data.datasets import pad_with_last
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
+from nmjax.run_folder import (
+    CONFIG_FILE,
+    FIGURES_DIR,
+    SPLITS,
+    checkpoint_steps,
+    find_skel_run,
+    keypoints_file,
+    load_config,
+    load_trajectories,
+    read_skeleton,
+    read_skeleton_inputs,
+    write_skeleton,
+    write_trajectories,
+)
 from nmjax.skeleton import (
     DEFAULT_NEIGHBORS,
     PRUNE_THRESHOLD,
     Skeleton,
     extract_skeleton,
-    load_skeleton,
     prune,
-    skeleton_from_parents,
 )
-from nmjax.train import common, dyn, parallel, skel
-from nmjax.train.common import (
-    AFFINITY_FILE,
-    FIGURES_DIR,
-    SKELETON_FILE,
-    STATS_FILE,
-    STATS_KEYS,
-    keypoints_file,
-)
+from nmjax.train import dyn, parallel, skel
 
-RUNS_ROOT = Path("runs")
+# The run folder's names that the application modules (evaluate, view, tasks, export, release)
+# read from here; `nmjax.run_folder` owns them.
+AFFINITY_FILE = run_folder.AFFINITY_FILE
+SKELETON_FILE = run_folder.SKELETON_FILE
+STATS_FILE = run_folder.STATS_FILE
+motion_format = run_folder.motion_format
+pruned_skeleton = run_folder.pruned_skeleton
+read_trajectories = run_folder.read_trajectories
+run_kind = run_folder.run_kind
+skeleton_intensities = run_folder.skeleton_intensities
+
 CLIP_CHUNK = 8  # detector batches voxelised at once by `detect_clips` (bounds host memory)
-SPLITS = ("train", "test")
-
-
-def run_kind(run: str | Path) -> str:
-    """ "dyn" for a phase-2 run folder (its config names a `skel_run`), "skel" for phase 1."""
-    path = Path(run) / common.CONFIG_FILE
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; --run must be a run folder of `nmjax train-skel` or "
-            "`nmjax train-dyn`"
-        )
-    try:
-        config = json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"{path} is not valid JSON ({err}); the run folder is damaged") from err
-    return "dyn" if "skel_run" in config else "skel"
 
 
 # --- phase 1: the detector --------------------------------------------------------------------
@@ -115,7 +110,7 @@ class Detector:
         """`fn(graphdef, state, batch)` on `voxels` in batches of the training batch size, the
         last padded with the last crop, so one compiled shape serves every call."""
         b = self.cfg.data.batch_size
-        padded = common.pad_with_last(voxels, -(-len(voxels) // b) * b)
+        padded = pad_with_last(voxels, -(-len(voxels) // b) * b)
         return [
             jax.device_get(fn(self.graphdef, self.state, jnp.asarray(padded[i : i + b])))
             for i in range(0, len(padded), b)
@@ -183,7 +178,7 @@ def sequence_voxels(seq, sample_rate: int, grid: int) -> np.ndarray:
 def sequence_windows(voxels: np.ndarray, frames: int) -> np.ndarray:
     """(S, G, G, G) -> (ceil(S / T), T, G, G, G); the last window padded with the last frame."""
     windows = -(-voxels.shape[0] // frames)
-    voxels = common.pad_with_last(voxels, windows * frames)
+    voxels = pad_with_last(voxels, windows * frames)
     return voxels.reshape(windows, frames, *voxels.shape[1:])
 
 
@@ -214,9 +209,7 @@ def export_keypoints(
         keypoints = detector.keypoints(sequence_windows(voxels, data.frames))
         keypoints = keypoints.reshape(-1, *keypoints.shape[2:])  # windows joined in time
         arrays[seq.name] = keypoints[: len(voxels)].astype(np.float32)
-    path = keypoints_file(run, split) if path is None else Path(path)
-    atomic.save_npz(path, **arrays)
-    return path
+    return write_trajectories(keypoints_file(run, split) if path is None else path, arrays)
 
 
 def finish_phase1(run: str | Path, *, export: bool = True) -> None:
@@ -237,7 +230,7 @@ def finish_phase1(run: str | Path, *, export: bool = True) -> None:
                 file=sys.stderr,
             )
     if export:
-        detector = Detector.load(run, common.checkpoint_steps(run / common.CHECKPOINTS)[-1])
+        detector = Detector.load(run, checkpoint_steps(run)[-1])
         if parallel.is_primary():
             for split in SPLITS:
                 export_keypoints(run, split, detector=detector)
@@ -424,8 +417,8 @@ def phase2_detector(skel_run: str | Path) -> Detector:
       FileNotFoundError: the folder holds no detector checkpoint (names both ways out).
     """
     skel_run = Path(skel_run)
-    has_config = (skel_run / common.CONFIG_FILE).is_file()
-    if not has_config or not common.checkpoint_steps(skel_run / common.CHECKPOINTS):
+    has_config = (skel_run / CONFIG_FILE).is_file()
+    if not has_config or not checkpoint_steps(skel_run):
         raise FileNotFoundError(
             f"{skel_run} holds no phase-1 detector checkpoint, and phase-2 inputs 'crop' run the "
             "detector on every crop; give a trained phase-1 run (--skel-run) or train on its "
@@ -435,50 +428,6 @@ def phase2_detector(skel_run: str | Path) -> Detector:
 
 
 # --- phase 1: the skeleton --------------------------------------------------------------------
-
-
-def read_skeleton_inputs(run: Path) -> tuple[np.ndarray, dict[str, np.ndarray]]:
-    """(affinity (N, K, K), keypoint stats) of a phase-1 run, checked against each other.
-
-    Raises:
-      FileNotFoundError: a missing run folder or file (names the file and how it is made).
-      ValueError: missing keys or shapes that disagree.
-    """
-    if not run.is_dir():
-        raise FileNotFoundError(f"phase-1 run folder {run} does not exist (--run)")
-    affinity_path, stats_path = run / AFFINITY_FILE, run / STATS_FILE
-    for path in (affinity_path, stats_path):
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path} not found; phase-1 training (`nmjax train-skel`) writes it at the end"
-            )
-    affinity = np.load(affinity_path)
-    if affinity.ndim == 2:
-        affinity = affinity[None]
-    if affinity.ndim != 3 or affinity.shape[1] != affinity.shape[2]:
-        raise ValueError(f"{affinity_path} must hold an (N, K, K) array, got {affinity.shape}")
-    num = affinity.shape[1]
-    with np.load(stats_path) as z:
-        missing = [k for k in STATS_KEYS if k not in z.files]
-        if missing:
-            raise ValueError(f"{stats_path} lacks {missing}; it needs {list(STATS_KEYS)}")
-        stats = {k: np.asarray(z[k]) for k in STATS_KEYS}
-    expected = {
-        "intensities": (num,),
-        "rest_positions": (num, 3),
-        "example_keypoints": (num, 4),
-    }
-    for key, shape in expected.items():
-        if stats[key].shape != shape:
-            raise ValueError(
-                f"{stats_path}: {key} has shape {stats[key].shape}, expected {shape} for the "
-                f"K={num} keypoints of {affinity_path}"
-            )
-    if stats["example_voxels"].ndim != 3:
-        raise ValueError(
-            f"{stats_path}: example_voxels must be (G, G, G), got {stats['example_voxels'].shape}"
-        )
-    return affinity, stats
 
 
 def extract_run_skeleton(
@@ -506,8 +455,9 @@ def extract_run_skeleton(
     affinity, stats = read_skeleton_inputs(run)
     skeleton = extract_skeleton(affinity, n_neighbors, stats["intensities"], method=method)
     pruned, keep = prune(skeleton, stats["intensities"], prune_threshold)
-    skeleton.save(
-        run / SKELETON_FILE,
+    write_skeleton(
+        run,
+        skeleton,
         intensities=stats["intensities"].astype(np.float64),
         rest_positions=stats["rest_positions"].astype(np.float64),
         n_neighbors=int(n_neighbors),
@@ -525,154 +475,6 @@ def extract_run_skeleton(
         title=f"{run.name}: K={skeleton.num_keypoints}, kept {int(keep.sum())}",
     )
     return skeleton
-
-
-def read_skeleton(run: str | Path) -> Skeleton:
-    """The tree of a phase-1 run's `skeleton.json` (the one reader of that file).
-
-    Raises:
-      FileNotFoundError: the skeleton has not been extracted yet (names the command).
-      ValueError: the file is not JSON, lacks `parents` or they do not describe a rooted tree.
-    """
-    path = Path(run) / SKELETON_FILE
-    fix = f"re-run `nmjax extract-skeleton --run {run}`"
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; extract the skeleton first with `nmjax extract-skeleton --run "
-            f"{run}`"
-        )
-    try:
-        return load_skeleton(path)
-    except (json.JSONDecodeError, TypeError) as err:
-        raise ValueError(f"{path} is not a skeleton file ({err}); {fix}") from err
-    except ValueError as err:
-        raise ValueError(f"{err}; {fix}") from err
-
-
-def motion_format(run: str | Path) -> tuple[float, int]:
-    """(frames per second, up axis 0/1/2) of a phase-1 run's keypoint sequences, from its data
-    configuration (`config.frame_rate`)."""
-    from nmjax.config import frame_rate
-
-    data = common.load_config(run, SkelTrainConfig).data
-    return frame_rate(data.name, data.sample_rate), data.up_axis
-
-
-def skeleton_intensities(run: str | Path) -> np.ndarray | None:
-    """The mean keypoint intensities stored beside the tree in skeleton.json, if any."""
-    values = json.loads((Path(run) / SKELETON_FILE).read_text()).get("intensities")
-    return None if values is None else np.asarray(values, np.float64)
-
-
-def pruned_skeleton(run: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
-    """(pruned parents (K,), kept-node mask (K,) bool) exactly as `extract_run_skeleton` stored
-    them in the run's skeleton.json (`pruned_parents`, `keep`), or None when the run has no
-    skeleton.json.
-
-    Nothing is pruned again: these are the nodes the run's skeleton keeps, whatever threshold
-    it was extracted with (`nmjax extract-skeleton --prune-threshold`).
-
-    Raises:
-      ValueError: the file lacks the two fields, or they do not describe a tree over the kept
-        nodes with the root kept (names the command that rewrites the file).
-    """
-    path = Path(run) / SKELETON_FILE
-    if not path.is_file():
-        return None
-    tree = read_skeleton(run)
-    stored = json.loads(path.read_text())
-    fix = f"re-run `nmjax extract-skeleton --run {run}`"
-    if "keep" not in stored or "pruned_parents" not in stored:
-        raise ValueError(f"{path} lacks `keep` / `pruned_parents` (the kept nodes); {fix}")
-    keep = np.asarray(stored["keep"])
-    try:
-        pruned = skeleton_from_parents(np.asarray(stored["pruned_parents"]))
-    except ValueError as err:
-        raise ValueError(f"{path}: `pruned_parents` is not a tree ({err}); {fix}") from err
-    parents = np.asarray(pruned.parents)
-    if (
-        keep.dtype != bool
-        or keep.shape != (tree.num_keypoints,)
-        or pruned.num_keypoints != tree.num_keypoints
-        or not keep[pruned.root]
-        or not keep[parents[keep]].all()
-    ):
-        raise ValueError(
-            f"{path}: `keep` and `pruned_parents` must be {tree.num_keypoints} booleans and a "
-            f"tree over the same keypoints whose kept nodes hang off kept nodes; {fix}"
-        )
-    return parents, keep
-
-
-# --- phase 1 -> phase 2: keypoint trajectories ------------------------------------------------
-
-
-def find_skel_run(
-    data: str, skel_run: str | Path | None = None, runs_root: str | Path = RUNS_ROOT
-) -> Path:
-    """The phase-1 run to train on: `skel_run`, or the latest `runs_root/skel-<data>-*` folder.
-
-    Raises:
-      FileNotFoundError: no such run, naming the command that creates it.
-    """
-    if skel_run is not None:
-        path = Path(skel_run)
-        if not path.is_dir():
-            raise FileNotFoundError(
-                f"--skel-run {path} does not exist; train phase 1 first with "
-                f"`make train-skel DATA={data}` or pass an existing phase-1 run folder"
-            )
-        return path
-    candidates = sorted(p for p in Path(runs_root).glob(f"skel-{data}-*") if p.is_dir())
-    if not candidates:
-        raise FileNotFoundError(
-            f"no phase-1 run of {data!r} under {runs_root}/ (expected {runs_root}/skel-{data}-*); "
-            f"run `make train-skel DATA={data}` first, or pass --skel-run DIR"
-        )
-    return candidates[-1]
-
-
-def load_trajectories(run: str | Path, split: str) -> dict[str, np.ndarray]:
-    """Keypoint trajectories {sequence: (T_seq, K, 4) float32} of a phase-1 run's split.
-
-    Raises:
-      FileNotFoundError: keypoints_<split>.npz has not been exported (names the command).
-    """
-    path = keypoints_file(run, split)
-    if not path.is_file():
-        raise FileNotFoundError(
-            f"{path} not found; export the phase-1 keypoints first with "
-            f"`nmjax export-keypoints --run {run}`"
-        )
-    return read_trajectories(path)
-
-
-def read_trajectories(path: str | Path) -> dict[str, np.ndarray]:
-    """{sequence: (T_seq, K, 4) float32} of a keypoints .npz (the layout of keypoints_*.npz).
-
-    Raises:
-      ValueError: no sequences, a wrong shape, or values that are not finite in float32.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} not found; export it with `nmjax export-keypoints`")
-    with np.load(path) as npz:
-        raw = {name: np.asarray(npz[name]) for name in npz.files}
-    if not raw:
-        raise ValueError(f"{path} holds no sequences; re-export the keypoints")
-    trajectories = {}
-    for name, x in raw.items():
-        if x.ndim != 3 or x.shape[-1] != 4:
-            raise ValueError(f"{path}[{name!r}] has shape {x.shape}; expected (T_seq, K, 4)")
-        with np.errstate(over="ignore", invalid="ignore"):
-            x32 = x.astype(np.float32)
-        if not np.isfinite(x32).all():
-            raise ValueError(
-                f"{path}[{name!r}] holds NaN, inf or values beyond the float32 range; re-export "
-                "the keypoints"
-            )
-        trajectories[name] = x32
-    return trajectories
 
 
 # --- phase 2 ----------------------------------------------------------------------------------
@@ -735,7 +537,7 @@ def train_dynamics(
 def restore_dynamics(run: str | Path, step: int | None = None) -> Dynamics:
     """The trained dynamics model of a phase-2 run folder (latest checkpoint by default)."""
     run = Path(run)
-    cfg = common.load_config(run, DynTrainConfig)
+    cfg = load_config(run, DynTrainConfig)
     if not cfg.skel_run:
         raise ValueError(f"{run}/config.json names no skel_run; is {run} a `train-dyn` run?")
     skeleton = read_skeleton(cfg.skel_run)
@@ -745,7 +547,7 @@ def restore_dynamics(run: str | Path, step: int | None = None) -> Dynamics:
 def load_phase2(run: str | Path) -> tuple[Dynamics, DynTrainConfig, Path]:
     """(dynamics model, its config, the phase-1 run folder) of a phase-2 run."""
     model = restore_dynamics(run)
-    cfg = common.load_config(run, DynTrainConfig)
+    cfg = load_config(run, DynTrainConfig)
     return model, cfg, Path(cfg.skel_run)
 
 
@@ -753,15 +555,15 @@ def find_vrnn_run(dyn_run: Path, skel_run: Path, inputs: str = "crop") -> Path |
     """A positional-baseline phase-2 run beside `dyn_run` trained on the same phase-1 run with
     the same `inputs`."""
     for candidate in sorted(Path(dyn_run).parent.glob("*"), reverse=True):
-        if candidate == Path(dyn_run) or not (candidate / common.CONFIG_FILE).is_file():
+        if candidate == Path(dyn_run) or not (candidate / CONFIG_FILE).is_file():
             continue
         try:
-            cfg = common.load_config(candidate, DynTrainConfig)
+            cfg = load_config(candidate, DynTrainConfig)
         except (ValueError, FileNotFoundError, TypeError):
             continue
         same = cfg.skel_run and Path(cfg.skel_run).resolve() == Path(skel_run).resolve()
         same = same and cfg.inputs == inputs
-        if cfg.model.model == "vrnn" and same and (candidate / common.CHECKPOINTS).is_dir():
+        if cfg.model.model == "vrnn" and same and bool(checkpoint_steps(candidate)):
             return candidate
     return None
 
@@ -772,7 +574,7 @@ def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig,
     Raises:
       ValueError: `run` is not an "nm" run, or the VRNN run was trained on another phase-1 run.
     """
-    dyn_cfg = common.load_config(run, DynTrainConfig)
+    dyn_cfg = load_config(run, DynTrainConfig)
     if dyn_cfg.model.model != "nm":
         raise ValueError(
             f"{run} is a '{dyn_cfg.model.model}' run; give the Neural Marionette ('nm') run "
@@ -782,7 +584,7 @@ def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig,
     if vrnn_run is None:
         return dyn_cfg, skel_run, find_vrnn_run(run, skel_run, dyn_cfg.inputs)
     vrnn_run = Path(vrnn_run)
-    vrnn_cfg = common.load_config(vrnn_run, DynTrainConfig)
+    vrnn_cfg = load_config(vrnn_run, DynTrainConfig)
     vrnn_skel = vrnn_cfg.skel_run
     if not vrnn_skel or Path(vrnn_skel).resolve() != skel_run.resolve():
         raise ValueError(

@@ -110,7 +110,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"nmjax {name}: {one_line(err)}", file=sys.stderr)
         return 2
     except RuntimeError as err:
-        from nmjax.train.common import NonFiniteLossError  # only the trainers load JAX
+        from nmjax.train.loop import NonFiniteLossError  # only the trainers load JAX
 
         if not isinstance(err, NonFiniteLossError):
             raise

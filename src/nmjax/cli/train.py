@@ -81,7 +81,7 @@ def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume
 
 def _saved_config(args: argparse.Namespace, cls: type):
     """The run's own config for --resume (which needs --run)."""
-    from nmjax.train import common
+    from nmjax import run_folder
 
     if args.run is None:
         raise ValueError("--resume needs --run DIR (the run folder to continue)")
@@ -90,10 +90,10 @@ def _saved_config(args: argparse.Namespace, cls: type):
             "--init-from starts a new run from another run's weights and --resume continues "
             "--run itself; give one of them"
         )
-    cfg = common.load_config(args.run, cls)
+    cfg = run_folder.load_config(args.run, cls)
     # A folder with nothing to resume (no checkpoint, or only imported weights) is refused here,
     # before any data is read or any detector run.
-    common.check_run_dir(args.run, resume=True, config=cfg)
+    run_folder.check_run_dir(args.run, resume=True, config=cfg)
     return cfg
 
 
@@ -116,7 +116,13 @@ def _initialize(args: argparse.Namespace) -> None:
 
 def skel_config(args: argparse.Namespace):
     """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import SkelTrainConfig, apply_overrides, skel_preset, with_steps
+    from nmjax.config import (
+        SkelTrainConfig,
+        apply_overrides,
+        replace_fields,
+        skel_preset,
+        with_steps,
+    )
     from nmjax.train import skel
 
     if args.resume:
@@ -134,7 +140,7 @@ def skel_config(args: argparse.Namespace):
     if args.steps is not None:
         # A new run counts in steps instead of epochs; a resumed one keeps its schedule and
         # only moves its end.
-        resized = dataclasses.replace(cfg, steps=args.steps)
+        resized = replace_fields(cfg, steps=args.steps)
         cfg = resized if args.resume else with_steps(cfg, args.steps)
     if args.run is not None:
         cfg = dataclasses.replace(cfg, run=str(args.run))
@@ -182,9 +188,9 @@ def fit_to_minutes(cfg, args: argparse.Namespace, started: float):
     per_step = row["compute_s_median"] + row["load_s_per_step"]
     fitted = fit_schedule(cfg, per_step, args.fit_minutes, time.perf_counter() - started)
     print(
-        f"--fit-minutes {args.fit_minutes:g}: {per_step:.3f} s per step -> {fitted.steps} steps, "
-        f"learning-rate milestones {fitted.lr_milestones}, training stops by "
-        f"{fitted.time_limit_minutes:.1f} minutes",
+        f"--fit-minutes {args.fit_minutes:g}: {per_step:.3f} s per step -> {fitted.loop.steps} "
+        f"steps, learning-rate milestones {fitted.optim.lr_milestones}, training stops by "
+        f"{fitted.loop.time_limit_minutes:.1f} minutes",
         file=sys.stderr,
     )
     return fitted
@@ -203,13 +209,13 @@ def train_skel(argv: list[str]) -> int:
         if args.steps is not None:
             p.error("give --steps or --fit-minutes, not both")
     _initialize(args)
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.train import skel
 
     cfg = skel_config(args)
     if args.fit_minutes is not None:
         cfg = fit_to_minutes(cfg, args, started)
-    run = Path(cfg.run) if cfg.run else skel.default_run_dir(cfg.data.name)
+    run = Path(cfg.run) if cfg.run else run_folder.default_run_dir("skel", cfg.data.name)
     summary = skel.train(
         cfg, run, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
     )
@@ -223,7 +229,7 @@ def train_skel(argv: list[str]) -> int:
 
 def dyn_config(args: argparse.Namespace):
     """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import DynTrainConfig, apply_overrides, dyn_preset
+    from nmjax.config import DynTrainConfig, apply_overrides, dyn_preset, replace_fields
 
     if args.resume:
         cfg = _saved_config(args, DynTrainConfig)
@@ -241,8 +247,8 @@ def dyn_config(args: argparse.Namespace):
         if getattr(args, name) is not None:
             cfg = dataclasses.replace(cfg, **{name: getattr(args, name)})
     if args.steps is not None:  # a new run counts in steps instead of epochs
-        resized = dataclasses.replace(cfg, steps=args.steps)
-        cfg = resized if args.resume else dataclasses.replace(resized, epochs=0)
+        resized = replace_fields(cfg, steps=args.steps)
+        cfg = resized if args.resume else replace_fields(resized, epochs=0)
     return _init_from(apply_overrides(cfg, args.overrides), args)
 
 

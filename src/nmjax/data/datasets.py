@@ -234,3 +234,11 @@ def crop_sequence(
     vertices = np.asarray(seq.vertices[idx], dtype=np.float32)
     joints = None if seq.joints is None else np.asarray(seq.joints[idx], dtype=np.float32)
     return vertices, joints
+
+
+def pad_with_last(x: np.ndarray, length: int) -> np.ndarray:
+    """`x` (N, ...) extended to at least `length` along axis 0 by repeating its last entry (a
+    sequence's last frame, a batch's last crop); unchanged when it is long enough."""
+    if len(x) >= length:
+        return x
+    return np.concatenate([x, np.repeat(x[-1:], length - len(x), axis=0)])

@@ -13,12 +13,12 @@ import numpy as np
 from flax import nnx
 
 from nmjax import atomic, metrics, provenance, runs
+from nmjax.data.datasets import pad_with_last
 from nmjax.evaluate.phase1 import PHASE1_METRICS, evaluate_phase1
 from nmjax.evaluate.stats import summarize_per_rate
 from nmjax.evaluate.tables import markdown_tables
 from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
-from nmjax.train import common
 
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
 METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
@@ -145,7 +145,7 @@ def evaluate_interpolation(
             kp_err: dict[str, list[float]] = {m: [] for m in methods}
             for i in range(0, len(starts), chunk):
                 ts = starts[i : i + chunk]
-                ts = common.pad_with_last(ts, chunk)  # a fixed shape: one compilation per rate
+                ts = pad_with_last(ts, chunk)  # a fixed shape: one compilation per rate
                 real = min(chunk, len(starts) - i)
                 kp, vox = keyframe_clips(detector, seq, ts, rate, sequence, frames, voxels)
                 key, sub = jax.random.split(key)

@@ -49,8 +49,7 @@ def kind(folder: Path) -> str:
     Raises:
       FileNotFoundError: no such folder, or one that holds none of these.
     """
-    from nmjax import runs, tasks
-    from nmjax.train import common
+    from nmjax import run_folder, runs, tasks
 
     if not folder.is_dir():
         raise FileNotFoundError(
@@ -63,10 +62,10 @@ def kind(folder: Path) -> str:
         return "generate"
     if (folder / INTERPOLATE_FILE).is_file():
         return "interpolate"
-    if (folder / common.CONFIG_FILE).is_file():
+    if (folder / run_folder.CONFIG_FILE).is_file():
         return runs.run_kind(folder)
     raise FileNotFoundError(
-        f"--run {folder} holds no {common.CONFIG_FILE}, {tasks.RETARGET_FILE}, {GENERATE_FILE} "
+        f"--run {folder} holds no {run_folder.CONFIG_FILE}, {tasks.RETARGET_FILE}, {GENERATE_FILE} "
         f"or {INTERPOLATE_FILE}; is it an unfinished run or output?"
     )
 
@@ -109,11 +108,12 @@ def _listed(names: list[str]) -> str:
 
 
 def _sequences(folder: Path, found: str, split: str) -> list[str]:
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.config import DynTrainConfig
-    from nmjax.train import common
 
-    skel_run = folder if found == "skel" else common.load_config(folder, DynTrainConfig).skel_run
+    skel_run = (
+        folder if found == "skel" else run_folder.load_config(folder, DynTrainConfig).skel_run
+    )
     return list(runs.load_trajectories(skel_run, split))
 
 

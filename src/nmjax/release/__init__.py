@@ -15,8 +15,8 @@ and a phase-2 run folder that every nmjax command reads (`runs`), as if `train-s
   and `Dynamics`, each with its layout conversion; `network_widths`, `expected_tensors`.
 - `convert`: `fill` applies the map and refuses a tensor left over, a parameter left unfilled,
   or shapes that disagree, naming them; `build_networks` builds and fills both networks.
-- `run_writing`: the phase-1 artefacts (affinity.npy, keypoint_stats.npz) of the imported
-  detector.
+- `run_writing`: config.json and checkpoint 0 of each imported run (its phase-1 artefacts go
+  through `nmjax.run_folder.write_phase1_artifacts`, as a trained run's do).
 - `importer`: `import_release`, all of it, written atomically (a temporary folder renamed onto
   DIR).
 
@@ -51,7 +51,6 @@ from nmjax.release.layout import (
     pointwise_kernel,
 )
 from nmjax.release.options import SUPPORTED_OPTIONS, configs_from_options
-from nmjax.release.run_writing import write_phase1_artifacts
 
 __all__ = [
     "CONV",
@@ -84,5 +83,4 @@ __all__ = [
     "pointwise_kernel",
     "read_checkpoint",
     "read_options",
-    "write_phase1_artifacts",
 ]

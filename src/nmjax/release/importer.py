@@ -16,7 +16,7 @@ from nmjax.release.checkpoint import Checkpoint, read_checkpoint, read_options
 from nmjax.release.convert import build_networks
 from nmjax.release.layout import network_widths
 from nmjax.release.options import configs_from_options
-from nmjax.release.run_writing import save_run, write_phase1_artifacts
+from nmjax.release.run_writing import save_run
 
 PROVENANCE_FILE = "release.json"
 DEMO_SOURCE = "data/demo/source/gHO_sBM_cAll_d20_mHO1_ch05.npy"  # in the authors' repository
@@ -132,7 +132,7 @@ def import_release(
     """
     from tqdm import tqdm
 
-    from nmjax import provenance, runs
+    from nmjax import provenance, run_folder, runs
     from nmjax.data.meshes import load_point_sequence
     from nmjax.train import dyn, skel
 
@@ -164,7 +164,7 @@ def import_release(
         )
         try:
             save_run(tmp / "skel", skel_cfg, detector, skel.StepSettings.of(skel_cfg).optimizer)
-            write_phase1_artifacts(tmp / "skel", detector, keypoints, voxels)
+            run_folder.write_phase1_artifacts(tmp / "skel", detector.affinity(), keypoints, voxels)
             runs.extract_run_skeleton(tmp / "skel")
             save_run(tmp / "dyn", dyn_cfg, dynamics, dyn.StepSettings.of(dyn_cfg).optimizer)
             for folder in ("skel", "dyn"):

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import runs
-from nmjax.train import common
+from nmjax.data.datasets import pad_with_last
 
 
 def pick_inputs(
@@ -33,7 +33,7 @@ def pick_inputs(
     if missing:
         raise ValueError(f"no test sequence named {missing}; available: {sorted(trajectories)}")
     chosen = chosen[:count]
-    crops = [common.pad_with_last(trajectories[name][:frames], frames) for name in chosen]
+    crops = [pad_with_last(trajectories[name][:frames], frames) for name in chosen]
     return chosen, np.stack(crops).astype(np.float32)
 
 

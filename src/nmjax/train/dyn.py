@@ -16,7 +16,7 @@ Inputs come from a phase-1 run folder (contract C10, read by `nmjax.runs`): `ske
 The crops of step s are the starts drawn with the key fold_in(seed key, s) (`crop_draws`, a block
 of steps at a time on the host, so a lazily detected crop is known before its step runs), so a
 resumed run sees exactly the batches of an uninterrupted one without saving a data-iterator
-state. The step and the loop are those of phase 1 (`common.train_loop`); only `loss_fn` and the
+state. The step and the loop are those of phase 1 (`loop.train_loop`); only `loss_fn` and the
 data differ.
 
 Loss: Eq. 3 (`losses.vrnn_reconstruction`) + kl_weight * Eq. 4, the KL reduced as the authors'
@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple, Protocol
@@ -40,13 +39,12 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import losses
+from nmjax import losses, run_folder
 from nmjax.config import DYN_INPUTS, DynTrainConfig
+from nmjax.data.datasets import pad_with_last
 from nmjax.models.dynamics import Dynamics
-from nmjax.skeleton import load_skeleton
-from nmjax.train import common, parallel
+from nmjax.train import checkpoints, loop, optim, parallel
 
-RUNS_ROOT = Path("runs")
 MAX_VAL_CROPS = 64
 
 
@@ -64,7 +62,7 @@ def crop_table(trajectories: dict[str, np.ndarray], frames: int) -> tuple[np.nda
     """
     pieces, starts, offset = [], [], 0
     for name in sorted(trajectories):
-        x = common.pad_with_last(trajectories[name], frames)
+        x = pad_with_last(trajectories[name], frames)
         pieces.append(x)
         starts.append(offset + np.arange(len(x) - frames + 1))
         offset += len(x)
@@ -238,11 +236,11 @@ class StepSettings:
     batch_size: int
     frames: int
     kl_weight: float
-    optimizer: common.OptimizerSettings
+    optimizer: optim.OptimizerSettings
 
     @classmethod
     def of(cls, cfg: DynTrainConfig) -> StepSettings:
-        return cls(cfg.batch_size, cfg.frames, cfg.kl_weight, common.OptimizerSettings.of(cfg))
+        return cls(cfg.batch_size, cfg.frames, cfg.kl_weight, optim.OptimizerSettings.of(cfg))
 
 
 @functools.partial(
@@ -274,7 +272,7 @@ def train_step(state, x, base_key, step, *, graphdef, settings: StepSettings, me
     x = parallel.constrain_batch(x, mesh)
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (_, metrics), grads = grad_fn(model, x, key_model, settings.kl_weight)
-    state = common.apply_gradients(model, grads, state, settings.optimizer)
+    state = optim.apply_gradients(model, grads, state, settings.optimizer)
     metrics["grad_norm"] = optax.tree.norm(grads)
     return parallel.constrain_replicated((state, metrics), mesh)
 
@@ -295,7 +293,7 @@ def build(
 ) -> tuple[nnx.GraphDef, dict[str, Any]]:
     """The model of `cfg` and its optimizer state: (graphdef, {"model": ..., "opt": ...})."""
     model = Dynamics(cfg.model, parents, order, rngs=nnx.Rngs(cfg.seed))
-    return common.init_state(model, StepSettings.of(cfg).optimizer)
+    return optim.init_state(model, StepSettings.of(cfg).optimizer)
 
 
 # The fields the model's weights' shapes follow, besides the number of keypoints K: a run that
@@ -309,12 +307,12 @@ def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
 
     Raises:
       FileNotFoundError, ValueError: one line; the source is no phase-2 run with a checkpoint,
-        its network differs from `cfg`'s (`common.init_source_config`), or it models another K.
+        its network differs from `cfg`'s (`checkpoints.init_source_config`), or it models another K.
     """
-    source = common.init_source_config(cfg, INIT_FIELDS, "phase-2")
+    source = checkpoints.init_source_config(cfg, INIT_FIELDS, "phase-2")
     if not source.skel_run:
         raise ValueError(f"--init-from {cfg.init_from}: its config.json names no skel_run")
-    tree = load_skeleton(Path(source.skel_run) / common.SKELETON_FILE)
+    tree = run_folder.read_skeleton(source.skel_run)
     if tree.num_keypoints != num_keypoints:
         raise ValueError(
             f"--init-from {cfg.init_from}: its model moves K={tree.num_keypoints} keypoints (the "
@@ -335,7 +333,9 @@ def restore_model(
     configuration is `cfg` and whose skeleton is (`parents`, `order`). `nmjax.runs.
     restore_dynamics` is the run-folder API over it (it reads both from the folder)."""
     graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
-    with common.Checkpointer(Path(run) / common.CHECKPOINTS, keep=cfg.keep_checkpoints) as ckpt:
+    with checkpoints.Checkpointer(
+        run_folder.checkpoint_dir(run), keep=cfg.loop.keep_checkpoints
+    ) as ckpt:
         _, state = ckpt.restore(abstract, step=step)
     return nnx.merge(graphdef, state["model"])
 
@@ -397,14 +397,11 @@ def eval_step(state, x, x_cond, key, *, graphdef):
 # --- loop -------------------------------------------------------------------------------------
 
 
-def default_run_dir(cfg: DynTrainConfig) -> Path:
-    return RUNS_ROOT / f"dyn-{cfg.data}-{cfg.model.model}-{time.strftime('%Y%m%d-%H%M%S')}"
-
-
 def check_config(cfg: DynTrainConfig) -> None:
     """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
-    common.check_positive(cfg, ("batch_size", "frames", "log_every", "val_every", "ckpt_every"))
-    common.check_schedule(cfg)
+    loop.check_positive({"batch_size": cfg.batch_size, "frames": cfg.frames})
+    loop.check_loop(cfg.loop)
+    optim.check_schedule(cfg.optim, cfg.loop)
     if cfg.inputs not in DYN_INPUTS:
         raise ValueError(
             f"inputs = {cfg.inputs!r} is not a phase-2 input; valid inputs: {', '.join(DYN_INPUTS)}"
@@ -431,7 +428,7 @@ def train(
     progress: bool = True,
     step_hook: Callable[[int, Any], Any] | None = None,
 ) -> tuple[Path, list[dict[str, float]]]:
-    """Trains `cfg` to `cfg.steps` steps; returns the run folder and the validation records.
+    """Trains `cfg` to `cfg.loop.steps` steps; returns the run folder and the validation records.
 
     Args:
       cfg: the configuration; `cfg.skel_run` names the phase-1 run the inputs come from (stored
@@ -441,7 +438,7 @@ def train(
         crops are detected as batches draw them); called once the run folder is accepted, so a
         refused run costs nothing.
       resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
-        `cfg` only in `common.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from` starts
+        `cfg` only in `run_folder.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from` starts
         from that run's weights (`initial_weights`) and a fresh optimizer.
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step.
@@ -450,7 +447,7 @@ def train(
       NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
     """
     check_config(cfg)
-    if cfg.epochs > 0 and not cfg.steps_per_epoch:
+    if cfg.loop.epochs > 0 and not cfg.loop.steps_per_epoch:
         raise ValueError(
             "dyn.train: a schedule in epochs needs its steps resolved from the training set "
             "first (config.resolve_epochs; nmjax.runs.train_dynamics does it)"
@@ -458,11 +455,15 @@ def train(
     parents, order = skeleton
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
-    run_dir = Path(cfg.run) if cfg.run is not None else default_run_dir(cfg)
+    run_dir = (
+        Path(cfg.run)
+        if cfg.run is not None
+        else run_folder.default_run_dir("dyn", cfg.data, cfg.model.model)
+    )
     graphdef, state = build(cfg, parents, order)
     if cfg.init_from and not resume:  # checked before the run folder is made
         initial = initial_weights(cfg, len(parents))
-        state["model"] = common.checked_weights(initial, state["model"], cfg.init_from)
+        state["model"] = checkpoints.checked_weights(initial, state["model"], cfg.init_from)
     run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
     data = inputs()
     check_inputs(data, len(parents))
@@ -488,7 +489,7 @@ def train(
             from nmjax import viz  # only the validating process draws
 
             viz.plot_motion(
-                run_dir / common.FIGURES_DIR / f"motion_{step:07d}.png",
+                run_dir / run_folder.FIGURES_DIR / f"motion_{step:07d}.png",
                 np.asarray(val_x[0]),
                 np.asarray(generated),
                 parents,
@@ -496,14 +497,13 @@ def train(
             )
         return scalars
 
-    common.train_loop(
+    loop.train_loop(
         state,
         run_dir,
         resume=resume,
-        cadence=common.Cadence.of(cfg),
+        loop=cfg.loop,
         train_step=train_step,
         validate=validate,
-        keep_checkpoints=cfg.keep_checkpoints,
         progress=progress,
         desc="train-dyn",
         step_hook=step_hook,

@@ -111,11 +111,12 @@ def sync(name: str) -> None:
 
 
 def prepare_run_dir(path: str | Path, **kwargs: Any) -> Path:
-    """`common.prepare_run_dir` on process 0 only; the others wait for it (shared filesystem)."""
-    from nmjax.train import common
+    """`run_folder.prepare_run_dir` on process 0 only; the others wait for it (shared
+    filesystem)."""
+    from nmjax import run_folder
 
     if is_primary():
-        path = common.prepare_run_dir(path, **kwargs)
+        path = run_folder.prepare_run_dir(path, **kwargs)
     sync(f"prepare_run_dir {path}")
     return Path(path)
 

@@ -1,18 +1,17 @@
 """Phase 1: train the keypoint detector and the affinity (paper Eq. 23).
 
 One module-level jit-compiled step (`train_step`) over the state {"model", "opt"} (graphdef and
-settings static, the state donated), driven by `common.train_loop`: periodic validation on the
+settings static, the state donated), driven by `loop.train_loop`: periodic validation on the
 test split (loss terms, SC-score Eq. 21 when joints exist, a picture), orbax checkpoints (latest
 few + best validation loss, with the grain iterator position, so a resume continues exactly),
 metrics to JSONL and TensorBoard. At the end the run folder gets affinity.npy and
 keypoint_stats.npz; `nmjax.runs.finish_phase1` adds skeleton.json and keypoints_{train,test}.npz
-(contract C10; the names are `common`'s).
+(contract C10, `nmjax.run_folder`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import functools
 from collections.abc import Callable
 from pathlib import Path
@@ -24,15 +23,15 @@ import numpy as np
 import optax
 from flax import nnx
 
-from nmjax import atomic, losses, metrics
 from nmjax import keypoints as kp_lib
+from nmjax import losses, metrics, run_folder
 from nmjax.config import LossWeights, SkelTrainConfig, resolve_epochs
 from nmjax.data.pipeline import Augmentation
 from nmjax.models.detector import KeypointDetector, check_detector_config
-from nmjax.train import common, parallel
+from nmjax.train import checkpoints, loop, optim, parallel
 
 BEST_METRIC = "val/loss"
-NonFiniteLossError = common.NonFiniteLossError
+NonFiniteLossError = loop.NonFiniteLossError
 
 
 # --- configuration -----------------------------------------------------------------------------
@@ -54,16 +53,9 @@ def check_config(cfg: SkelTrainConfig) -> None:
         )
     if cfg.data.batch_size < 1:
         raise ValueError(f"data.batch_size must be >= 1, got {cfg.data.batch_size}")
-    common.check_positive(cfg, ("log_every", "val_every", "val_batches", "ckpt_every"))
-    common.check_schedule(cfg)
-    if not 0 <= cfg.ema_decay < 1:
-        raise ValueError(
-            f"ema_decay must be in [0, 1) (0: no weight average; e.g. 0.99), got {cfg.ema_decay}"
-        )
-    if not cfg.time_limit_minutes >= 0:
-        raise ValueError(
-            f"time_limit_minutes must be >= 0 (0: no limit), got {cfg.time_limit_minutes}"
-        )
+    loop.check_loop(cfg.loop)
+    loop.check_positive({"val_batches": cfg.val_batches})
+    optim.check_schedule(cfg.optim, cfg.loop)
 
 
 # --- model, state and the compiled steps -------------------------------------------------------
@@ -74,17 +66,17 @@ class StepSettings:
     """What the compiled steps depend on besides the graph (hashable: a static jit argument)."""
 
     weights: LossWeights
-    optimizer: common.OptimizerSettings
+    optimizer: optim.OptimizerSettings
 
     @classmethod
     def of(cls, cfg: SkelTrainConfig) -> StepSettings:
-        return cls(cfg.weights, common.OptimizerSettings.of(cfg))
+        return cls(cfg.weights, optim.OptimizerSettings.of(cfg))
 
 
 def build(cfg: SkelTrainConfig, seed: int | None = None) -> tuple[nnx.GraphDef, dict[str, Any]]:
     """(graphdef, {"model", "opt"}) of the detector and its optimizer, initialised from `seed`."""
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed if seed is None else seed))
-    return common.init_state(model, StepSettings.of(cfg).optimizer)
+    return optim.init_state(model, StepSettings.of(cfg).optimizer)
 
 
 # The fields the detector's weights' shapes follow: a run that starts from another run's weights
@@ -106,9 +98,9 @@ def initial_weights(cfg: SkelTrainConfig) -> nnx.State:
 
     Raises:
       FileNotFoundError, ValueError: one line; the source is no phase-1 run with a checkpoint,
-        or its network differs from `cfg`'s (`common.init_source_config`).
+        or its network differs from `cfg`'s (`checkpoints.init_source_config`).
     """
-    common.init_source_config(cfg, INIT_FIELDS, "phase-1")
+    checkpoints.init_source_config(cfg, INIT_FIELDS, "phase-1")
     model, _ = restore_detector(cfg.init_from)
     return nnx.state(model)
 
@@ -120,11 +112,13 @@ def restore_detector(
     best by validation loss, else the latest (`model_of`: the weight average when the run keeps
     one). `nmjax.runs.load_detector` is the run-folder API over it."""
     run = Path(run)
-    cfg = common.load_config(run, SkelTrainConfig)
+    cfg = run_folder.load_config(run, SkelTrainConfig)
     # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
     graphdef, state = build(cfg)
-    abstract = common.abstract_state(state)
-    ckpt = common.Checkpointer(run / common.CHECKPOINTS, cfg.keep_checkpoints, BEST_METRIC)
+    abstract = checkpoints.abstract_state(state)
+    ckpt = checkpoints.Checkpointer(
+        run_folder.checkpoint_dir(run), cfg.loop.keep_checkpoints, BEST_METRIC
+    )
     try:
         if step is None:
             step = ckpt.best_step() or ckpt.latest_step()
@@ -164,7 +158,7 @@ def train_step(state, batch, *, graphdef, settings: StepSettings, mesh):
     model = nnx.merge(graphdef, state["model"])
     grad_fn = nnx.value_and_grad(loss_fn, has_aux=True)
     (loss, terms), grads = grad_fn(model, batch, settings.weights)
-    state = common.apply_gradients(model, grads, state, settings.optimizer)
+    state = optim.apply_gradients(model, grads, state, settings.optimizer)
     scalars = {"loss": loss, "grad_norm": optax.tree.norm(grads), **terms, **fusion(model)}
     return parallel.constrain_replicated((state, scalars), mesh)
 
@@ -181,7 +175,7 @@ def eval_step(state, batch, *, graphdef, settings: StepSettings, mesh):
     """Loss terms and keypoints (B, T, K, 4) of a validation batch (by the weight average when
     the run keeps one)."""
     batch = parallel.constrain_batch(batch, mesh)
-    model = common.trained_model(graphdef, state, settings.optimizer.ema_decay)
+    model = optim.trained_model(graphdef, state, settings.optimizer.ema_decay)
     out = model(batch["voxels"])
     loss, terms = losses.skeleton_loss({**batch, **out}, settings.weights)
     # The median share of a heatmap's mass beyond 1.5 cells of its peak (the softplus floor).
@@ -223,11 +217,11 @@ def device_batch(
 
 
 def model_of(graphdef: Any, state: Any, cfg: SkelTrainConfig) -> KeypointDetector:
-    """The trained detector of a training state (`common.trained_model`)."""
-    return common.trained_model(graphdef, state, cfg.ema_decay)
+    """The trained detector of a training state (`optim.trained_model`)."""
+    return optim.trained_model(graphdef, state, cfg.optim.ema_decay)
 
 
-abstract_state = common.abstract_state
+abstract_state = checkpoints.abstract_state
 
 
 # --- validation --------------------------------------------------------------------------------
@@ -268,11 +262,6 @@ def validate(
 # --- the training loop -------------------------------------------------------------------------
 
 
-def default_run_dir(data: str) -> Path:
-    stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%d-%H%M%S")
-    return Path("runs") / f"skel-{data}-{stamp}"
-
-
 def train(
     cfg: SkelTrainConfig,
     run_dir: str | Path,
@@ -283,13 +272,13 @@ def train(
     progress: bool = True,
     step_hook: Callable[[int, Any], Any] | None = None,
 ) -> dict[str, Any]:
-    """Trains phase 1 into `run_dir` until `cfg.steps`; returns a summary dict.
+    """Trains phase 1 into `run_dir` until `cfg.loop.steps`; returns a summary dict.
 
     Args:
       cfg: the full configuration (checked before anything is compiled or written).
       run_dir: the run folder (contract C10).
       resume: continue from the latest checkpoint of `run_dir` (state, step, data position); the
-        run's config.json may differ from `cfg` only in `common.RESUMABLE_FIELDS`. Without it a
+        run's config.json may differ from `cfg` only in `run_folder.RESUMABLE_FIELDS`. Without it a
         run with `cfg.init_from` starts from that run's weights (`initial_weights`) and a fresh
         optimizer.
       overwrite: replace an existing `run_dir`.
@@ -307,7 +296,7 @@ def train(
     from nmjax.data.synthetic import ensure_dataset
 
     check_config(cfg)
-    if cfg.time_limit_minutes > 0 and jax.process_count() > 1:
+    if cfg.loop.time_limit_minutes > 0 and jax.process_count() > 1:
         # Each host would read its own clock and could stop one step before the others.
         raise ValueError("time_limit_minutes works in single-process runs only; set steps instead")
     mesh = parallel.data_mesh()
@@ -322,7 +311,9 @@ def train(
     val_batches = pipeline.eval_batches(cfg.data, "test", cfg.val_batches, seed=cfg.seed)
     graphdef, state = build(cfg)
     if cfg.init_from and not resume:  # checked before the run folder is made
-        state["model"] = common.checked_weights(initial_weights(cfg), state["model"], cfg.init_from)
+        state["model"] = checkpoints.checked_weights(
+            initial_weights(cfg), state["model"], cfg.init_from
+        )
     run = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     state = parallel.replicate(state, mesh)
     step_fn, eval_fn = make_steps(graphdef, cfg, mesh)
@@ -336,14 +327,13 @@ def train(
         _validation_figure(run, step, model_of(graphdef, state, cfg), val_batches, keypoints)
         return scalars
 
-    end = common.train_loop(
+    end = loop.train_loop(
         state,
         run,
         resume=resume,
-        cadence=common.Cadence.of(cfg),
+        loop=cfg.loop,
         train_step=train_step,
         validate=validate_and_draw,
-        keep_checkpoints=cfg.keep_checkpoints,
         best_metric=BEST_METRIC,
         data_iter=data_iter,
         progress=progress,
@@ -355,7 +345,7 @@ def train(
         "run": str(run),
         "start_step": end.start,
         "step": end.step,
-        "stopped_by_time_limit": end.step < cfg.steps,
+        "stopped_by_time_limit": end.step < cfg.loop.steps,
         **end.validation,
     }
 
@@ -367,7 +357,7 @@ def _validation_figure(run, step, model, val_batches, val_kp) -> None:
     if not parallel.is_primary():
         return
     viz.plot_keypoints(
-        run / common.FIGURES_DIR / f"keypoints_{step:07d}.png",
+        run / run_folder.FIGURES_DIR / f"keypoints_{step:07d}.png",
         val_batches[0]["voxels"][0, 0],
         val_kp[0, 0, 0],
         affinity,
@@ -390,12 +380,5 @@ def write_artifacts(
     _, keypoints = validate(make_steps(graphdef, cfg, mesh)[1], cfg, mesh, state, val_batches)
     if not parallel.is_primary():
         return
-    atomic.save_npy(run / common.AFFINITY_FILE, affinity)
-    flat = keypoints.reshape(-1, *keypoints.shape[-2:])  # (frames, K, 4)
-    atomic.save_npz(  # the keys are common.STATS_KEYS, which `nmjax.runs` checks
-        run / common.STATS_FILE,
-        intensities=flat[:, :, 3].mean(axis=0).astype(np.float32),
-        rest_positions=flat[:, :, :3].mean(axis=0).astype(np.float32),
-        example_voxels=np.asarray(val_batches[0]["voxels"][0, 0], np.float32),
-        example_keypoints=keypoints[0, 0, 0].astype(np.float32),
-    )
+    example_voxels = val_batches[0]["voxels"][0, 0]
+    run_folder.write_phase1_artifacts(run, affinity, keypoints, example_voxels)

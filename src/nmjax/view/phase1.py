@@ -85,14 +85,13 @@ def read_phase1(run: str | Path, split: str = "test") -> Phase1Data:
       FileNotFoundError: no skeleton.json or keypoints_<split>.npz yet (names the command).
       ValueError: damaged run files.
     """
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.config import SkelTrainConfig
     from nmjax.data import datasets, layout
     from nmjax.skeleton import influence
-    from nmjax.train import common
 
     run = Path(run)
-    cfg = common.load_config(run, SkelTrainConfig)
+    cfg = run_folder.load_config(run, SkelTrainConfig)
     keypoints = runs.load_trajectories(run, split)
     skeleton = runs.read_skeleton(run)
     parents, keep = runs.pruned_skeleton(run)

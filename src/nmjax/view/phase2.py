@@ -95,12 +95,11 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
     """
     from flax import nnx
 
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.config import DynTrainConfig, SkelTrainConfig
-    from nmjax.train import common
 
     run = Path(run)
-    model_kind = common.load_config(run, DynTrainConfig).model.model
+    model_kind = run_folder.load_config(run, DynTrainConfig).model.model
     if model_kind != "nm":
         raise ValueError(
             f"--run {run} is a '{model_kind}' run; view the Neural Marionette ('nm') run of the "
@@ -121,7 +120,7 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
         root=skeleton.root,
         model=nnx.split(model),
         vrnn=vrnn,
-        up_axis=common.load_config(skel_run, SkelTrainConfig).data.up_axis,
+        up_axis=run_folder.load_config(skel_run, SkelTrainConfig).data.up_axis,
     )
 
 

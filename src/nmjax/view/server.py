@@ -40,8 +40,7 @@ def folder_kind(folder: str | Path) -> str:
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
     """
-    from nmjax import runs, tasks
-    from nmjax.train import common
+    from nmjax import run_folder, runs, tasks
 
     folder = Path(folder)
     if folder.is_file() and folder.suffix.lower() in GLTF_SUFFIXES:
@@ -52,12 +51,12 @@ def folder_kind(folder: str | Path) -> str:
             "`nmjax train-dyn`, an output folder of `nmjax retarget`, or a .glb / .gltf file "
             "of `nmjax export`"
         )
-    if (folder / common.CONFIG_FILE).is_file():
+    if (folder / run_folder.CONFIG_FILE).is_file():
         return runs.run_kind(folder)
     if (folder / tasks.RETARGET_FILE).is_file():
         return "retarget"
     raise FileNotFoundError(
-        f"--run {folder} holds neither {common.CONFIG_FILE} (a run folder) nor "
+        f"--run {folder} holds neither {run_folder.CONFIG_FILE} (a run folder) nor "
         f"{tasks.RETARGET_FILE} (an `nmjax retarget` output); is it an unfinished run?"
     )
 

@@ -1,4 +1,5 @@
-"""Tests of nmjax.train.common: optimizer schedule, run folders, checkpoints, metric logs."""
+"""Tests of the trainers' shared pieces: the optimizer schedule (`train.optim`), run folders
+(`run_folder`), checkpoints (`train.checkpoints`), metric logs (`train.metric_log`)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,15 @@ import optax
 import pytest
 from flax import nnx
 
-from nmjax.config import DetectorConfig, SkelTrainConfig
-from nmjax.train import common
+from nmjax import run_folder
+from nmjax.config import (
+    DetectorConfig,
+    SkelTrainConfig,
+    config_from_dict,
+    config_to_dict,
+    replace_fields,
+)
+from nmjax.train import checkpoints, metric_log, optim
 
 
 def _adam_lr(tx, grads_seq):
@@ -31,14 +39,14 @@ def _adam_lr(tx, grads_seq):
 
 
 def test_optimizer_schedule_factors_of_initial_rate():
-    tx = common.make_optimizer(0.1, milestones=(3, 5), decay=(0.25, 0.1), clip_norm=None)
+    tx = optim.make_optimizer(0.1, milestones=(3, 5), decay=(0.25, 0.1), clip_norm=None)
     # With a constant gradient, Adam's normalised step equals the learning rate.
     sizes = _adam_lr(tx, [1.0] * 7)
     np.testing.assert_allclose(sizes, [0.1] * 3 + [0.025] * 2 + [0.01] * 2, rtol=1e-4)
 
 
 def test_optimizer_clips_global_norm():
-    tx = common.make_optimizer(1.0, clip_norm=1.0)
+    tx = optim.make_optimizer(1.0, clip_norm=1.0)
     grads = {"a": jnp.array([3.0, 4.0]), "b": jnp.array([12.0])}  # global norm 13
     _, state = tx.update(grads, tx.init(grads), grads)
     mu = optax.tree_utils.tree_get(state, "mu")
@@ -52,67 +60,69 @@ def test_optimizer_clips_global_norm():
 )
 def test_optimizer_rejects_bad_schedule(milestones, decay):
     with pytest.raises(ValueError, match="lr_"):
-        common.make_optimizer(1e-3, milestones, decay, 1.0)
+        optim.make_optimizer(1e-3, milestones, decay, 1.0)
 
 
 def test_weight_average_is_the_bias_corrected_ema_of_the_updated_weights():
     """apply_gradients keeps optax.ema of the weights after each update; trained_model hands out
     its bias-corrected value (sum_i (1-d) d^(n-i) w_i / (1 - d^n)); without it, the weights."""
     decay = 0.6
-    settings = common.OptimizerSettings(0.1, clip_norm=None, ema_decay=decay)
-    graphdef, state = common.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), settings)
+    settings = optim.OptimizerSettings(0.1, clip_norm=None, ema_decay=decay)
+    graphdef, state = optim.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), settings)
     grads_seq = [1.0, -2.0, 0.5]
     weights = []
     for g in grads_seq:
         model = nnx.merge(graphdef, state["model"])
         grads = jax.tree.map(lambda x, g=g: jnp.full_like(x, g), nnx.state(model, nnx.Param))
-        state = common.apply_gradients(model, grads, state, settings)
+        state = optim.apply_gradients(model, grads, state, settings)
         weights.append(np.asarray(state["model"]["kernel"][...]))
     n = len(weights)
     expected = sum((1 - decay) * decay ** (n - 1 - i) * w for i, w in enumerate(weights))
     expected /= 1 - decay**n
-    averaged = common.trained_model(graphdef, state, decay)
+    averaged = optim.trained_model(graphdef, state, decay)
     np.testing.assert_allclose(averaged.kernel[...], expected, rtol=1e-5)
     assert not np.allclose(expected, weights[-1])  # the average is not the last weights
-    plain = common.OptimizerSettings(0.1, clip_norm=None)
-    _, plain_state = common.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), plain)
+    plain = optim.OptimizerSettings(0.1, clip_norm=None)
+    _, plain_state = optim.init_state(nnx.Linear(2, 1, rngs=nnx.Rngs(0)), plain)
     assert "ema" not in plain_state
     np.testing.assert_array_equal(
-        common.trained_model(graphdef, plain_state, 0.0).kernel[...],
+        optim.trained_model(graphdef, plain_state, 0.0).kernel[...],
         plain_state["model"]["kernel"][...],
     )
 
 
 def test_config_round_trip():
-    cfg = SkelTrainConfig(model=DetectorConfig(hourglass_channels=(4, 5, 6)), steps=7)
-    back = common.config_from_dict(SkelTrainConfig, common.config_to_dict(cfg))
+    cfg = replace_fields(
+        SkelTrainConfig(model=DetectorConfig(hourglass_channels=(4, 5, 6))), steps=7
+    )
+    back = config_from_dict(SkelTrainConfig, config_to_dict(cfg))
     assert back == cfg
     with pytest.raises(ValueError, match="bogus"):
-        common.config_from_dict(SkelTrainConfig, {"bogus": 1})
+        config_from_dict(SkelTrainConfig, {"bogus": 1})
 
 
 def test_prepare_run_dir(tmp_path):
-    cfg = SkelTrainConfig(steps=3)
-    run = common.prepare_run_dir(tmp_path / "run", resume=False, config=cfg)
-    assert json.loads((run / "config.json").read_text())["steps"] == 3
-    assert common.load_config(run, SkelTrainConfig) == cfg
+    cfg = replace_fields(SkelTrainConfig(), steps=3)
+    run = run_folder.prepare_run_dir(tmp_path / "run", resume=False, config=cfg)
+    assert json.loads((run / "config.json").read_text())["loop"]["steps"] == 3
+    assert run_folder.load_config(run, SkelTrainConfig) == cfg
     (run / "keep.txt").write_text("x")
     with pytest.raises(ValueError, match="--resume"):
-        common.prepare_run_dir(run, resume=False, config=cfg)
+        run_folder.prepare_run_dir(run, resume=False, config=cfg)
     assert (run / "keep.txt").exists()
     # resuming needs a complete checkpoint; refused before anything in the folder changes
     with pytest.raises(FileNotFoundError, match="no complete checkpoint"):
-        common.prepare_run_dir(run, resume=True, config=cfg)
+        run_folder.prepare_run_dir(run, resume=True, config=cfg)
     assert (run / "keep.txt").exists()
-    common.prepare_run_dir(run, resume=False, config=cfg, overwrite=True)
+    run_folder.prepare_run_dir(run, resume=False, config=cfg, overwrite=True)
     assert not (run / "keep.txt").exists()
     with pytest.raises(FileNotFoundError, match="missing"):
-        common.prepare_run_dir(tmp_path / "missing", resume=True, config=cfg)
+        run_folder.prepare_run_dir(tmp_path / "missing", resume=True, config=cfg)
 
 
 def _state(features: int, seed: int = 0):
     model = nnx.Linear(3, features, rngs=nnx.Rngs(seed))
-    optimizer = nnx.Optimizer(model, common.make_optimizer(1e-3), wrt=nnx.Param)
+    optimizer = nnx.Optimizer(model, optim.make_optimizer(1e-3), wrt=nnx.Param)
     _, state = nnx.split((model, optimizer))
     return state
 
@@ -126,7 +136,7 @@ def test_checkpointer_keeps_latest_and_best_and_restores_iterator(tmp_path):
     it = iter(dataset)
     states = {step: _state(4, seed=step) for step in range(1, 6)}
     val = {1: 3.0, 2: 1.0, 3: 2.0}
-    with common.Checkpointer(tmp_path / "ckpt", keep=2, best_metric="val_loss") as ckpt:
+    with checkpoints.Checkpointer(tmp_path / "ckpt", keep=2, best_metric="val_loss") as ckpt:
         for step, state in states.items():
             next(it)
             metrics = {"val_loss": val[step]} if step in val else None
@@ -150,20 +160,21 @@ def test_checkpointer_keeps_latest_and_best_and_restores_iterator(tmp_path):
 _RESTORE_SCRIPT = """
 import sys, jax
 from flax import nnx
-from nmjax.train import common
+from nmjax import config, run_folder
+from nmjax.train import checkpoints, metric_log, optim
 model = nnx.Linear(3, 4, rngs=nnx.Rngs(0))
-optimizer = nnx.Optimizer(model, common.make_optimizer(1e-3), wrt=nnx.Param)
+optimizer = nnx.Optimizer(model, optim.make_optimizer(1e-3), wrt=nnx.Param)
 _, state = nnx.split((model, optimizer))
 abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
 try:
-    common.Checkpointer(sys.argv[1], keep=2).restore(abstract)
+    checkpoints.Checkpointer(sys.argv[1], keep=2).restore(abstract)
 except ValueError as err:
     print("ValueError:", err)
 """
 
 
 def test_checkpointer_incompatible_and_corrupt(tmp_path):
-    with common.Checkpointer(tmp_path / "ckpt", keep=2) as ckpt:
+    with checkpoints.Checkpointer(tmp_path / "ckpt", keep=2) as ckpt:
         ckpt.save(1, _state(4))
         with pytest.raises(ValueError, match="configuration"):
             ckpt.restore(_abstract(_state(5)))
@@ -191,16 +202,16 @@ def test_checkpointer_incompatible_and_corrupt(tmp_path):
 
 
 def test_metric_writer_jsonl_tensorboard_and_resume(tmp_path):
-    writer = common.MetricWriter(tmp_path)
+    writer = metric_log.MetricWriter(tmp_path)
     for step in (1, 2, 3):
         writer.write_scalars(step, {"loss": jnp.float32(step * 0.5), "lr": 1e-3})
     writer.close()
-    records = common.read_metrics(tmp_path)
+    records = metric_log.read_metrics(tmp_path)
     assert [r["step"] for r in records] == [1, 2, 3]
     assert records[1]["loss"] == pytest.approx(1.0)
     assert any((tmp_path / "tb").iterdir())
-    writer = common.MetricWriter(tmp_path, resume_step=2)
+    writer = metric_log.MetricWriter(tmp_path, resume_step=2)
     writer.write_scalars(3, {"loss": 9.0})
     writer.close()
-    records = common.read_metrics(tmp_path)
+    records = metric_log.read_metrics(tmp_path)
     assert [(r["step"], r["loss"]) for r in records] == [(1, 0.5), (2, 1.0), (3, 9.0)]

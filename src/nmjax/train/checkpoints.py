@@ -1,0 +1,262 @@
+"""Orbax checkpoints of a training state (`Checkpointer`), the check that a checkpoint fits the
+model it is restored into, and the start of a fine-tuning run from another run's weights.
+"""
+
+from __future__ import annotations
+
+import gc
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import grain
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+from orbax.checkpoint import checkpoint_managers as ocp_policies
+
+from nmjax import run_folder
+from nmjax.config import flatten_config
+
+
+def abstract_state(state: Any) -> Any:
+    """Shapes, dtypes and shardings of `state`: a restore target that keeps its placement."""
+    return jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=getattr(x, "sharding", None)),
+        state,
+    )
+
+
+def init_source_config(config: Any, fields: tuple[str, ...], phase: str) -> Any:
+    """The configuration of the run `config.init_from` that a new run starts from (fine-tuning),
+    after refusing, in one line, a source that a run of `config` cannot take its weights from.
+
+    Args:
+      config: the new run's configuration (a `SkelTrainConfig` or `DynTrainConfig`).
+      fields: dotted config fields that shape the network's weights: they must be equal.
+      phase: "phase-1" or "phase-2", for the messages.
+
+    Raises:
+      FileNotFoundError: no run folder or no checkpoint there.
+      ValueError: a run of the other phase, or a network that differs in `fields` (each named
+        with both values and the `--set` that matches the source).
+    """
+    source = Path(config.init_from)
+    if not (source / run_folder.CONFIG_FILE).is_file():
+        raise FileNotFoundError(
+            f"--init-from {source}: no {run_folder.CONFIG_FILE} there; give a {phase} run folder "
+            "(one that `nmjax train-...` or `nmjax import-release` wrote)"
+        )
+    try:
+        saved = run_folder.load_config(source, type(config))
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"--init-from {source} is not a {phase} run ({err})") from err
+    if not run_folder.checkpoint_steps(source):
+        raise FileNotFoundError(f"--init-from {source}: the run has no complete checkpoint")
+    old, new = flatten_config(saved), flatten_config(config)
+    differ = [name for name in fields if old.get(name) != new.get(name)]
+    if differ:
+
+        def option(value: Any) -> str:
+            return ",".join(map(str, value)) if isinstance(value, list) else str(value)
+
+        diffs = ", ".join(f"{k} (run: {old.get(k)!r}, asked: {new.get(k)!r})" for k in differ)
+        sets = " ".join(f"--set {k}={option(old.get(k))}" for k in differ)
+        raise ValueError(
+            f"--init-from {source}: its network differs from this run's in {diffs}; start from "
+            f"a run of the same network, or give this one its network: {sets}"
+        )
+    return saved
+
+
+def checked_weights(weights: Any, expected: Any, source: str) -> Any:
+    """`weights` (a model state restored from the run `source`) to start a new model whose own
+    state is `expected`, after checking that every leaf has the expected shape and dtype.
+
+    Raises:
+      ValueError: a leaf missing, extra or of another shape (`_check_compatible`).
+    """
+    _check_compatible(expected, weights, f"--init-from {source}")
+    return weights
+
+
+class Checkpointer:
+    """One `ocp.CheckpointManager`: the last `keep` checkpoints plus the best by `best_metric`.
+
+    Each checkpoint holds the item `state` (a pytree, normally `nnx.state((model, optimizer))`)
+    and, when given, the item `data` (the grain iterator's position). Saves are synchronous so a
+    checkpoint is complete on disk when `save` returns, before the next step donates the buffers.
+    Existing checkpoints are never overwritten or deleted except by the retention policy.
+    """
+
+    def __init__(self, directory: str | Path, keep: int = 3, best_metric: str | None = None):
+        if keep < 1:
+            raise ValueError(f"keep_checkpoints must be >= 1, got {keep}")
+        self.directory = Path(directory).absolute()
+        self.best_metric = best_metric
+        policies: list[Any] = [ocp_policies.LatestN(n=keep)]
+        best_fn = None
+        if best_metric is not None:
+
+            def best_fn(metrics: Mapping[str, float]) -> float:
+                return float(metrics.get(best_metric, math.inf))
+
+            policies.append(
+                ocp_policies.BestN(
+                    get_metric_fn=best_fn,
+                    reverse=True,  # sorted descending, the last (lowest) n are kept
+                    n=1,
+                    keep_checkpoints_without_metrics=False,
+                )
+            )
+        options = ocp.CheckpointManagerOptions(
+            # best_fn only makes orbax record metrics and answer best_step(); which checkpoints
+            # survive is decided by the preservation policy alone.
+            best_fn=best_fn,
+            best_mode="min",
+            preservation_policy=ocp_policies.AnyPreservationPolicy(policies),
+            enable_async_checkpointing=False,
+            create=True,
+        )
+        self._manager = ocp.CheckpointManager(
+            self.directory,
+            options=options,
+            # Named handlers let a fresh process read a checkpoint's metadata before restoring.
+            item_handlers={
+                "state": ocp.StandardCheckpointHandler(),
+                "data": grain.checkpoint.CheckpointHandler(),
+            },
+        )
+
+    def latest_step(self) -> int | None:
+        """The newest saved step, or None."""
+        return self._manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        return sorted(self._manager.all_steps())
+
+    def best_step(self) -> int | None:
+        """The step with the lowest `best_metric` among kept checkpoints, or None."""
+        return self._manager.best_step() if self.best_metric is not None else None
+
+    def save(
+        self,
+        step: int,
+        state: Any,
+        metrics: Mapping[str, Any] | None = None,
+        data_iter: grain.DatasetIterator | None = None,
+    ) -> None:
+        """Writes checkpoint `step`; refuses to overwrite an existing one."""
+        if step in self._manager.all_steps():
+            raise ValueError(
+                f"checkpoint {step} already exists in {self.directory}; refusing to overwrite it"
+            )
+        items: dict[str, Any] = {"state": ocp.args.StandardSave(state)}
+        if data_iter is not None:
+            items["data"] = grain.checkpoint.CheckpointSave(data_iter)
+        if metrics is not None:
+            metrics = {k: float(v) for k, v in metrics.items()}
+        self._manager.save(step, args=ocp.args.Composite(**items), metrics=metrics, force=True)
+
+    def restore(
+        self,
+        abstract_state: Any,
+        step: int | None = None,
+        data_iter: grain.DatasetIterator | None = None,
+    ) -> tuple[int, Any]:
+        """Restores checkpoint `step` (default: the latest) into the structure of `abstract_state`.
+
+        Args:
+          abstract_state: pytree of `jax.ShapeDtypeStruct` (e.g. from `nnx.eval_shape`) or arrays.
+          step: which checkpoint; None = the latest.
+          data_iter: grain iterator whose position is restored in place, when given.
+
+        Returns:
+          (step, state).
+
+        Raises:
+          FileNotFoundError: there is no checkpoint (or not that step).
+          ValueError: the checkpoint is corrupt or belongs to a different model/configuration.
+        """
+        steps = self.all_steps()
+        if step is None:
+            if not steps:
+                raise FileNotFoundError(f"no checkpoint found in {self.directory}")
+            step = steps[-1]
+        elif step not in steps:
+            raise FileNotFoundError(
+                f"checkpoint {step} not found in {self.directory}; available steps: {steps}"
+            )
+        items: dict[str, Any] = {"state": ocp.args.StandardRestore(abstract_state)}
+        if data_iter is not None:
+            items["data"] = grain.checkpoint.CheckpointRestore(data_iter)
+        where = f"checkpoint {step} in {self.directory}"
+        failure = None
+        try:
+            # Refuse a mismatched checkpoint from its metadata, before any array read starts:
+            # orbax abandons the in-flight reads of a failed restore to a closed event loop.
+            saved = self._manager.item_metadata(step)["state"]
+        except Exception as err:  # orbax/tensorstore raise many types for damaged files
+            failure = err
+        else:
+            _check_compatible(abstract_state, saved, where)
+            try:
+                restored = self._manager.restore(step, args=ocp.args.Composite(**items))
+            except Exception as err:
+                failure = err
+        if failure is not None:
+            lines = str(failure).strip().splitlines()
+            reason = f"{type(failure).__name__}: {lines[0][:300] if lines else ''}"
+            # Finalise the read coroutines orbax abandoned on failure now, while the error is
+            # reported, rather than at some later garbage collection.
+            gc.collect()
+            raise ValueError(
+                f"{where} cannot be restored ({reason}). It is corrupt or was written by a "
+                "different model configuration; it was left untouched. Start a new run "
+                "(--run DIR) or resume from the matching configuration."
+            )
+        return step, restored["state"]
+
+    def close(self) -> None:
+        self._manager.wait_until_finished()
+        self._manager.close()
+
+    def __enter__(self) -> Checkpointer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _leaf_specs(tree: Any) -> dict[str, tuple[tuple[int, ...], np.dtype]]:
+    """{dotted leaf path: (shape, dtype)} for a pytree of arrays or orbax array metadata."""
+
+    def name(path: tuple[Any, ...]) -> str:
+        return ".".join(str(getattr(k, "key", getattr(k, "name", k))) for k in path)
+
+    leaves = jax.tree_util.tree_leaves_with_path(tree)
+    # nnx.Variable leaves end in `.value`; orbax metadata spells it as a dict key.
+    return {
+        name(path).removesuffix(".value"): (tuple(np.shape(x)), np.dtype(x.dtype))
+        for path, x in leaves
+    }
+
+
+def _check_compatible(expected: Any, saved: Any, where: str) -> None:
+    """Raises ValueError unless `saved` has the leaves, shapes and dtypes of `expected`."""
+    want, have = _leaf_specs(expected), _leaf_specs(saved)
+    if want.keys() != have.keys():
+        missing = sorted(want.keys() - have.keys())[:3]
+        extra = sorted(have.keys() - want.keys())[:3]
+        raise ValueError(
+            f"{where} has a different parameter structure than the current model (missing "
+            f"{missing}, unexpected {extra}); it was written by another configuration (start a "
+            "new run or use the run's own config)"
+        )
+    for key, (shape, dtype) in want.items():
+        if have[key] != (shape, dtype):
+            raise ValueError(
+                f"{where}: {key} has shape {have[key][0]} {have[key][1]}, the model expects "
+                f"{shape} {dtype}; the checkpoint belongs to another configuration"
+            )

@@ -51,7 +51,13 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
       ValueError: an option that selects a network nmjax does not implement, a missing option,
         or a dataset nmjax does not know.
     """
-    from nmjax.config import DynamicsConfig, dataset_spec, dyn_preset, skel_preset
+    from nmjax.config import (
+        DynamicsConfig,
+        dataset_spec,
+        dyn_preset,
+        replace_fields,
+        skel_preset,
+    )
 
     for name, value in SUPPORTED_OPTIONS.items():
         if _option(options, name) != value:
@@ -94,7 +100,7 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
     )
     seed = int(_option(options, "seed"))
     learning_rate = float(_option(options, "lrate"))
-    skel = dataclasses.replace(
+    skel = replace_fields(
         skel,
         data=data,
         model=model,
@@ -103,7 +109,7 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         seed=seed,
         run=str(run / "skel"),
     )
-    dyn = dataclasses.replace(
+    dyn = replace_fields(
         dyn_preset(dataset, "default"),
         skel_run=str(run / "skel"),
         model=DynamicsConfig(

@@ -70,30 +70,12 @@ def test_both_refuse_a_used_run_folder_alike_and_overwrite_it_when_asked(
 def test_both_count_epochs_by_the_one_rule(data_root, fake_run, tmp_path):
     # The tiny synth-arm set has 1 training sequence, the fake phase-1 run 3; B = 2 in phase 2.
     cases = (
-        (
-            skel.train_skeleton,
-            replace_fields(
-                _phase1(data_root, tmp_path / "skel", val_batches=1),
-                epochs=2,
-                decay_epochs=(),
-                lr_milestones=(),
-            ),
-            1,
-            1,
-        ),
-        (
-            dyn.train_dynamics,
-            replace_fields(
-                _phase2(fake_run, tmp_path / "dyn", batch_size=2),
-                epochs=1,
-                decay_epochs=(),
-                lr_milestones=(),
-            ),
-            3,
-            2,
-        ),
+        (skel.train_skeleton, _phase1(data_root, tmp_path / "skel", val_batches=1), 2, 1, 1),
+        (dyn.train_dynamics, _phase2(fake_run, tmp_path / "dyn", batch_size=2), 1, 3, 2),
     )
-    for entry, cfg, sequences, batch in cases:
+    for entry, cfg, epochs, sequences, batch in cases:
+        # Counted in epochs, without decays (the tiny runs are shorter than any preset's).
+        cfg = replace_fields(cfg, epochs=epochs, decay_epochs=(), lr_milestones=())
         summary = entry(replace_fields(cfg, val_every=100), progress=False)
         saved = run_folder.load_config(summary.run, type(cfg))
         expected = config.resolve_epochs(cfg, sequences, batch).loop

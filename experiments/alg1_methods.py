@@ -30,8 +30,9 @@ import numpy as np
 from nmjax import metrics, provenance
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
-from nmjax.runs import AFFINITY_FILE, STATS_FILE, Detector
+from nmjax.run_folder import AFFINITY_FILE, STATS_FILE
 from nmjax.skeleton import METHODS, extract_skeleton, prune
+from nmjax.train.skel import Detector
 
 RESULTS = Path(__file__).parent / "results"
 METRICS = {

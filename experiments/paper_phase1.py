@@ -58,9 +58,9 @@ from nmjax.evaluate import (
     true_tree,
 )
 from nmjax.metrics import voxel_points
-from nmjax.runs import Detector
 from nmjax.skeleton import extract_skeleton, prune
 from nmjax.train import skel
+from nmjax.train.skel import Detector
 
 BODIES, COMPARISON_BODIES = phase1_tables.BODIES, phase1_tables.COMPARISON_BODIES
 VARIANTS = {
@@ -243,7 +243,8 @@ def train(key: RowKey, cfg: SkelTrainConfig) -> tuple[Path, float | None]:
         json.loads((run / run_folder.CONFIG_FILE).read_text())
     ) == comparable(config_to_dict(cfg))
     has_checkpoint = resumable and bool(run_folder.checkpoint_steps(run))
-    skel.train(cfg, run, resume=has_checkpoint, overwrite=not has_checkpoint, progress=True)
+    cfg = dataclasses.replace(cfg, run=str(run))
+    skel.train_skeleton(cfg, resume=has_checkpoint, overwrite=not has_checkpoint, progress=True)
     runs.finish_phase1(run)
     return run, (time.perf_counter() - tic) / 60
 
@@ -267,7 +268,7 @@ def alg1_vs_filtered(detector: Detector, max_crops: int) -> dict[str, dict[str, 
     and mean intensities, pruned at the run's threshold, on the same test keypoints."""
     run = detector.run
     stored = json.loads((run / run_folder.SKELETON_FILE).read_text())
-    affinity, stats = runs.read_skeleton_inputs(run)
+    affinity, stats = run_folder.read_skeleton_inputs(run)
     names, keypoints, joints = [], [], []
     for name, _, gt, kp, _ in phase1_outputs(detector, max_crops):
         if gt is None:
@@ -299,7 +300,7 @@ def score(key: RowKey, run: Path, cfg: SkelTrainConfig, minutes, stamp) -> dict[
     detector = Detector.load(run)
     results = evaluate_phase1(detector, MAX_CROPS)
     scores = phase1_scores(results)
-    parents, keep = runs.pruned_skeleton(run)
+    parents, keep = run_folder.pruned_skeleton(run)
     return {
         "body": key.body,
         "seed": key.seed,

@@ -41,7 +41,7 @@ import numpy as np
 import paper_phase1
 import phase2_tables
 
-from nmjax import provenance, run_folder, runs
+from nmjax import provenance, run_folder
 from nmjax.config import (
     DynTrainConfig,
     config_from_dict,
@@ -57,7 +57,7 @@ from nmjax.evaluate import (
     evaluate_generation_run,
     evaluate_run,
 )
-from nmjax.train import metric_log
+from nmjax.train import dyn, metric_log
 
 BODIES = phase2_tables.BODIES
 MODELS = tuple(phase2_tables.MODELS)
@@ -182,7 +182,7 @@ def train(cfg: DynTrainConfig) -> tuple[Path, float | None]:
     if run.exists():
         shutil.rmtree(run)
     tic = time.perf_counter()
-    runs.train_dynamics(cfg, progress=True)
+    dyn.train_dynamics(cfg, progress=True)
     return run, (time.perf_counter() - tic) / 60
 
 

@@ -44,7 +44,7 @@ from nmjax.config import apply_overrides, replace_fields, skel_preset, with_step
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1
-from nmjax.runs import Detector
+from nmjax.train.skel import Detector
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "study"
@@ -253,7 +253,9 @@ def run_variant(
     begin = time.perf_counter()
     # The base rows also feed phase 2 (experiments/generation_table.py): only they export the
     # keypoints of every sequence.
-    summary = skel.train(cfg, run, overwrite=True, progress=sys.stderr.isatty())
+    summary = skel.train_skeleton(
+        replace_fields(cfg, run=str(run)), overwrite=True, progress=sys.stderr.isatty()
+    )
     runs.finish_phase1(run, export=name == "base")
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
@@ -269,10 +271,10 @@ def run_variant(
         "overrides": list(VARIANTS[name].overrides),
         "train_root": cfg.data.root,
         "budget": budget,
-        "steps": int(summary["step"]),
+        "steps": summary.step,
         "wall_minutes": wall,
         "load_average": os.getloadavg()[0],
-        "val_sc_last": summary.get("val/sc_score"),
+        "val_sc_last": summary.validation.get("val/sc_score"),
         "sc": results["sc"]["score"],
         "sc_std_over_joints": results["sc"]["std_over_joints"],
         "sc_fixed_nodes": results["sc_fixed_nodes"]["score"],

@@ -26,7 +26,8 @@ from nmjax import atomic, provenance
 from nmjax.data.normalize import normalize_sequence
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import voxelize
-from nmjax.runs import AFFINITY_FILE, FIGURES_DIR, STATS_FILE, extract_run_skeleton
+from nmjax.run_folder import AFFINITY_FILE, FIGURES_DIR, STATS_FILE
+from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import extract_skeleton
 
 

@@ -25,12 +25,12 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import provenance, run_folder, runs, viz
+from nmjax import provenance, run_folder, viz
 from nmjax.config import DYN_INPUTS, config_to_dict, dyn_preset, replace_fields
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.normalize import normalize_sequence
 from nmjax.skeleton import skeleton_from_parents
-from nmjax.train import metric_log
+from nmjax.train import dyn, metric_log
 
 RESULTS = Path(__file__).parent / "results"
 METRICS = {
@@ -101,12 +101,7 @@ def main() -> None:
             ckpt_every=args.steps,
             run=str(workdir / f"dyn-{args.data}-{model}-{args.preset}"),
         )
-        run_dir = Path(cfg.run)
-        if run_dir.exists():
-            import shutil
-
-            shutil.rmtree(run_dir)
-        run_dir, _ = runs.train_dynamics(cfg, progress=False)
+        run_dir = dyn.train_dynamics(cfg, overwrite=True, progress=False).run
         records = metric_log.read_metrics(run_dir)
         curves[model] = records
         rates = [r["train/steps_per_s"] for r in records if "train/steps_per_s" in r][1:]

@@ -12,8 +12,8 @@ from tiny_runs import PARENTS, make_runs
 
 from nmjax import evaluate, metrics, provenance
 from nmjax.data.voxelize import voxelize
-from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
+from nmjax.train.skel import Detector
 
 K = len(PARENTS)
 SKELETON_KEYS = (

@@ -331,13 +331,14 @@ def test_phase2_run_exports_its_reconstruction_of_a_sequence(runs, tmp_path):
     import jax.numpy as jnp
     from flax import nnx
 
+    from nmjax import run_folder
     from nmjax import runs as run_folders
 
-    name = sorted(run_folders.load_trajectories(runs["skel"], "test"))[0]
+    name = sorted(run_folder.load_trajectories(runs["skel"], "test"))[0]
     out = tmp_path / "recon.glb"
     assert export("--run", runs["nm"], "--seq", name, "--out", out) == 0
     model = run_folders.restore_dynamics(runs["nm"])
-    x = run_folders.load_trajectories(runs["skel"], "test")[name][None]
+    x = run_folder.load_trajectories(runs["skel"], "test")[name][None]
     _, recon = tasks.infer_rotations_jit(*nnx.split(model), jnp.asarray(x), jax.random.key(0))
     expected = in_file_axes(np.asarray(recon[0, ..., :3]))  # the decoder's FK (Eq. 2)
     doc, blob = load_gltf(out)
@@ -351,9 +352,9 @@ def test_phase2_run_exports_its_reconstruction_of_a_sequence(runs, tmp_path):
 
 
 def test_phase1_run_exports_keypoints_with_swing_rotations(runs, tmp_path):
-    from nmjax import runs as run_folders
+    from nmjax import run_folder
 
-    trajectories = run_folders.load_trajectories(runs["skel"], "test")
+    trajectories = run_folder.load_trajectories(runs["skel"], "test")
     name = sorted(trajectories)[0]
     out = tmp_path / "keypoints.glb"
     assert export("--run", runs["skel"], "--seq", name, "--out", out, "--up", "y") == 0

@@ -1,6 +1,6 @@
 """The episodic normalisation box (nmjax.data.normalize) against the formulas each caller wrote
 on its own before it had one definition: the whole-crop box (training, evaluation), the box of a
-clip's first frames (`runs.clip_voxels`) and the box of one mesh (`nmjax retarget`)."""
+clip's first frames (`dyn_inputs.clip_voxels`) and the box of one mesh (`nmjax retarget`)."""
 
 from __future__ import annotations
 

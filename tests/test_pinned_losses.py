@@ -17,9 +17,8 @@ import numpy as np
 from tiny_configs import small_arm_data, small_skel_config
 from tiny_runs import make_fake_run
 
-from nmjax import runs
 from nmjax.config import dyn_preset, replace_fields
-from nmjax.train import metric_log, skel
+from nmjax.train import dyn, metric_log, skel
 
 SKEL_LOSSES = [31.32627296447754, 35.00435256958008, 33.2287483215332, 37.119834899902344]
 DYN_LOSSES = [1.5169981718063354, 1.5589879751205444, 1.4423792362213135, 1.585466742515564]
@@ -35,7 +34,9 @@ def _train_losses(run) -> list[float]:
 def test_phase1_losses_are_pinned(tmp_path):
     root = small_arm_data(tmp_path / "data")
     cfg = small_skel_config(root, steps=4, log_every=1, val_every=4, val_batches=1, ckpt_every=4)
-    skel.train(cfg, tmp_path / "skel", progress=False, finalize=False)
+    skel.train_skeleton(
+        replace_fields(cfg, run=str(tmp_path / "skel")), progress=False, finalize=False
+    )
     np.testing.assert_allclose(_train_losses(tmp_path / "skel"), SKEL_LOSSES, rtol=RTOL)
 
 
@@ -51,5 +52,5 @@ def test_phase2_losses_are_pinned(tmp_path):
         ckpt_every=4,
         inputs="sequence",  # the fake phase-1 run has keypoints, no detector
     )
-    runs.train_dynamics(cfg, progress=False)
+    dyn.train_dynamics(cfg, progress=False)
     np.testing.assert_allclose(_train_losses(tmp_path / "dyn"), DYN_LOSSES, rtol=RTOL)

@@ -178,11 +178,3 @@ def test_phase2_default_is_the_releases_recipe(data):
     assert (resolved.loop.steps_per_epoch, resolved.loop.steps) == (77, 150 * 77)
     settings = optim.OptimizerSettings.of(resolved)
     assert settings.restart_period == 77 and settings.milestones == ()
-
-
-def test_phase2_trainer_refuses_epochs_it_cannot_count():
-    from nmjax.train import dyn
-
-    cfg = dyn_preset("synth-arm", "default")
-    with pytest.raises(ValueError, match="resolve_epochs"):
-        dyn.train(cfg, ((0,), (0,)), lambda: None)

@@ -488,6 +488,7 @@ def test_import_writes_two_run_folders_of_the_imported_values(small, imported, m
     from nmjax import keypoints, run_folder, runs
     from nmjax.config import DynTrainConfig, SkelTrainConfig
     from nmjax.skeleton import extract_skeleton
+    from nmjax.train.skel import Detector
 
     _, pth, opt = small
     root, skel_run, dyn_run, printed = imported
@@ -508,12 +509,12 @@ def test_import_writes_two_run_folders_of_the_imported_values(small, imported, m
     # The imported values, restored through the run-folder readers; the skeleton is Algorithm 1
     # on the imported affinity.
     tensors = ckpt.tensors
-    detector = runs.Detector.load(skel_run)
+    detector = Detector.load(skel_run)
     restored = nnx.merge(detector.graphdef, detector.state)
     logits = tensors["kypt_detector.affinity_params"]
     np.testing.assert_array_equal(restored.affinity_params[...], logits)
     tree = extract_skeleton(np.asarray(keypoints.affinity_from_params(jnp.asarray(logits))))
-    assert runs.read_skeleton(skel_run).parents == tree.parents
+    assert run_folder.read_skeleton(skel_run).parents == tree.parents
     model = runs.restore_dynamics(dyn_run)
     np.testing.assert_array_equal(
         model.initial_hidden[...], tensors["dyna_module.init_kypt_rnn_state"][0]
@@ -586,13 +587,14 @@ def test_evaluate_and_view_accept_the_imported_runs(small, monkeypatch):
 def test_point_file_clip_is_the_releases_crop(imported):
     """Frames 0, r, 2r, ... of the file, one bounding box over them, one crop through the
     detector."""
-    from nmjax import runs, tasks
+    from nmjax import tasks
     from nmjax.data import meshes
     from nmjax.data.normalize import normalize_sequence
     from nmjax.data.voxelize import voxelize
+    from nmjax.train.skel import Detector
 
     root, skel_run, _, _ = imported
-    detector = runs.Detector.load(skel_run)
+    detector = Detector.load(skel_run)
     points = np.load(root / "motion.npy")
     keypoints, voxels = tasks.point_file_keypoints(detector, root / "motion.npy", 10, 2)
     clip, _ = normalize_sequence(points[0:19:2])

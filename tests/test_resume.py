@@ -23,7 +23,7 @@ from tiny_runs import poison_after
 from nmjax import atomic, run_folder, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.config import replace_fields, resolve_epochs
-from nmjax.train import loop, metric_log, skel
+from nmjax.train import dyn, loop, metric_log, skel
 
 TORN = "3.orbax-checkpoint-tmp-1764633600"  # what orbax leaves of a save killed before its rename
 
@@ -55,7 +55,7 @@ def _refused(argv, capsys, run, named: str) -> None:
 def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
     cfg = skel_cfg(data_root, steps=2, val_every=2)
     run = tmp_path / "run"
-    skel.train(cfg, run, progress=False, finalize=False)
+    skel.train_skeleton(replace_fields(cfg, run=str(run)), progress=False, finalize=False)
     argv = ["train-skel", "--run", str(run), "--resume", "--steps", "4", "--no-progress"]
     for change, named in (
         ("model.channels=8", "model.channels"),
@@ -76,8 +76,10 @@ def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
     config_before = json.loads((run / run_folder.CONFIG_FILE).read_text())
     # --steps and the log cadence may change on a resume.
     resumed = replace_fields(cfg, steps=4, log_every=2)
-    summary = skel.train(resumed, run, resume=True, progress=False, finalize=False)
-    assert summary["start_step"] == 2 and summary["step"] == 4
+    summary = skel.train_skeleton(
+        replace_fields(resumed, run=str(run)), resume=True, progress=False, finalize=False
+    )
+    assert summary.start_step == 2 and summary.step == 4
     assert _train_steps(run) == [1, 2, 4]  # the dead process's step 3 is gone, 4 logged anew
     config = json.loads((run / run_folder.CONFIG_FILE).read_text())
     changed = {**config_before["loop"], "steps": 4, "log_every": 2}
@@ -88,7 +90,7 @@ def test_phase1_resume_rules_and_torn_checkpoint(data_root, tmp_path, capsys):
 def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, capsys):
     run = tmp_path / "dyn"
     cfg = tiny_cfg(fake_run, run, steps=2, log_every=1, val_every=2, ckpt_every=1)
-    runs.train_dynamics(cfg, progress=False)
+    dyn.train_dynamics(cfg, progress=False)
     argv = ["train-dyn", "--run", str(run), "--resume", "--steps", "4", "--no-progress"]
     _refused([*argv, "--seed", str(cfg.seed + 1)], capsys, run, "seed")
     _refused([*argv, "--batch-size", str(2 * cfg.batch_size)], capsys, run, "batch_size")
@@ -113,7 +115,7 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     nan_run = tmp_path / "nan"
     bad = replace_fields(cfg, run=str(nan_run), steps=3)
     with pytest.raises(loop.NonFiniteLossError, match="at step 2"):
-        runs.train_dynamics(bad, progress=False, step_hook=poison_after(1))
+        dyn.train_dynamics(bad, progress=False, step_hook=poison_after(1))
     assert run_folder.checkpoint_steps(nan_run) == [1]
     restored = runs.restore_dynamics(nan_run)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(restored))

@@ -112,7 +112,8 @@ def _script_skel(workdir: Path) -> dict:
 
     refusal = ""
     try:
-        skel.train(small_skel_config(root, batch_size=3), workdir / "odd", progress=False)
+        odd = small_skel_config(root, batch_size=3, run=str(workdir / "odd"))
+        skel.train_skeleton(odd, progress=False)
     except ValueError as err:
         refusal = str(err)
     return {
@@ -137,8 +138,8 @@ def _script_dyn(workdir: Path) -> dict:
     import jax.numpy as jnp
     from jax.sharding import PartitionSpec as P
 
-    from nmjax import atomic, runs
-    from nmjax.train import dyn, parallel
+    from nmjax import atomic
+    from nmjax.train import dyn, dyn_inputs, parallel
 
     cfg = _dyn_cfg()
     rng = np.random.default_rng(0)
@@ -146,7 +147,7 @@ def _script_dyn(workdir: Path) -> dict:
     poses = np.cumsum(rng.normal(scale=0.05, size=(30, len(PARENTS), 4)), axis=0)
     poses[..., 3] = 0.8
     poses, starts = poses.astype(np.float32), np.arange(30 - cfg.frames + 1, dtype=np.int32)
-    table = dyn.CropTable(poses, starts, cfg.frames)
+    table = dyn_inputs.CropTable(poses, starts, cfg.frames)
     draws = dyn.CropDraws(jax.random.key(3), table.num_starts, cfg.batch_size)
     results = {}
     seen = {}
@@ -179,7 +180,7 @@ def _script_dyn(workdir: Path) -> dict:
     refusal = ""
     odd = dataclasses.replace(_dyn_cfg(3), skel_run=str(skel_run), run=str(workdir / "odd"))
     try:
-        runs.train_dynamics(odd, progress=False)
+        dyn.train_dynamics(odd, progress=False)
     except ValueError as err:
         refusal = str(err)
     return {

@@ -14,7 +14,8 @@ from scipy.spatial.transform import Rotation
 
 from nmjax import atomic, cli, losses
 from nmjax import keypoints as kp_lib
-from nmjax.runs import extract_run_skeleton, pruned_skeleton
+from nmjax.run_folder import pruned_skeleton
+from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
     Skeleton,
     algorithm1_parents,

@@ -382,30 +382,20 @@ def runs(tmp_path_factory):
     return make_runs(tmp_path_factory.mktemp("tiny"))
 
 
-def test_phase2_trains_on_crops_of_the_phase1_run(runs, tmp_path, monkeypatch):
+def test_phase2_trains_on_crops_of_the_phase1_run(runs):
     """The default inputs: the detector of the phase-1 run on every crop of its training split,
-    handed to the trainer (whose loop the "sequence" tests cover) once the run is accepted."""
-    import dataclasses
-
-    from nmjax import runs as run_folders
+    made for the trainer (whose loop the "sequence" tests cover) once the run is accepted."""
     from nmjax.config import dyn_preset
+    from nmjax.train import dyn_inputs
 
     cfg = dyn_preset("synth-arm", "tiny")
     assert cfg.inputs == "crop"
-    cfg = dataclasses.replace(cfg, skel_run=str(runs["skel"]), run=str(tmp_path / "dyn"))
-    handed = {}
-
-    def train(cfg, skeleton, inputs, **kwargs):
-        handed.update(cfg=cfg, skeleton=skeleton, inputs=inputs)
-        return tmp_path / "dyn", []
-
-    monkeypatch.setattr(run_folders.dyn, "train", train)
-    run_folders.train_dynamics(cfg, progress=False)
-    assert handed["cfg"].inputs == "crop" and handed["skeleton"][0] == PARENTS
-    data = handed["inputs"]()  # the validation clips are detected now, training crops later
-    detector = run_folders.phase2_detector(runs["skel"])
-    train_seqs = list(run_folders.split_sequences(detector, "train").values())
-    starts = [run_folders.crop_starts(seq.num_frames, cfg.frames, 1) for seq in train_seqs]
+    count, inputs = dyn_inputs.phase2_inputs(cfg, runs["skel"], K)
+    data = inputs()  # the validation clips are detected now, training crops later
+    detector = dyn_inputs.phase2_detector(runs["skel"])
+    train_seqs = list(dyn_inputs.split_sequences(detector, "train").values())
+    assert count == len(train_seqs)
+    starts = [dyn_inputs.crop_starts(seq.num_frames, cfg.frames, 1) for seq in train_seqs]
     crops = data.crops
     assert crops.num_starts == sum(len(s) for s in starts) > len(train_seqs)
     assert crops.detected == 0 and crops.num_keypoints == K
@@ -414,7 +404,7 @@ def test_phase2_trains_on_crops_of_the_phase1_run(runs, tmp_path, monkeypatch):
     assert batch.shape == (3, cfg.frames, K, 4) and crops.detected == 2  # each detected once
     assert crops.postfix() == {"crops_detected": f"2/{crops.num_starts}"}
     np.testing.assert_allclose(
-        batch[0], run_folders.detect_clips(detector, [last], cfg.frames)[0], atol=1e-6
+        batch[0], dyn_inputs.detect_clips(detector, [last], cfg.frames)[0], atol=1e-6
     )
     np.testing.assert_array_equal(batch[0], batch[2])
     assert data.val.shape[1:] == (cfg.frames, K, 4) and data.val_cond.shape[1] == 1
@@ -428,18 +418,17 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
     uninterrupted one."""
     import dataclasses
 
-    from nmjax import runs as run_folders
     from nmjax.config import dyn_preset
-    from nmjax.train import metric_log
+    from nmjax.train import dyn, dyn_inputs, metric_log
 
     made = []
-    crop_inputs = run_folders.crop_inputs
+    crop_inputs = dyn_inputs.crop_inputs
 
     def recording(*args, **kwargs):
         made.append(crop_inputs(*args, **kwargs))
         return made[-1]
 
-    monkeypatch.setattr(run_folders, "crop_inputs", recording)
+    monkeypatch.setattr(dyn_inputs, "crop_inputs", recording)
     before_first_step = []
 
     def hook(step, state):
@@ -460,15 +449,15 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
         return [r["train/loss"] for r in metric_log.read_metrics(run) if "train/loss" in r]
 
     straight = dataclasses.replace(cfg, run=str(tmp_path / "straight"))
-    run_folders.train_dynamics(straight, progress=False, step_hook=hook)
+    dyn.train_dynamics(straight, progress=False, step_hook=hook)
     crops = made[-1].crops
     assert before_first_step == [0]
     assert 0 < crops.detected <= min(crops.num_starts, cfg.loop.steps * cfg.batch_size)
 
     stopped = replace_fields(cfg, run=str(tmp_path / "stopped"), steps=2)
-    run_folders.train_dynamics(stopped, progress=False)
+    dyn.train_dynamics(stopped, progress=False)
     resumed = replace_fields(stopped, steps=4)
-    run_folders.train_dynamics(resumed, resume=True, progress=False)
+    dyn.train_dynamics(resumed, resume=True, progress=False)
     assert made[-1].crops.detected <= 2 * cfg.batch_size  # only the last two steps' draws
     np.testing.assert_allclose(
         losses(tmp_path / "stopped"), losses(tmp_path / "straight"), rtol=1e-6
@@ -493,11 +482,11 @@ def test_generate_command(runs, tmp_path):
         observed = z["observed"]
     # "crop" inputs: the clip's first crop (T = 6 frames) normalised on its own, its first 2
     # frames through the detector on their own, as the release's generation conditions.
-    from nmjax import runs as run_folders
+    from nmjax.train import dyn_inputs
 
-    detector = run_folders.phase2_detector(runs["skel"])
-    seq = run_folders.split_sequences(detector, "test")[name]
-    x_cond = run_folders.detect_clips(detector, [(seq, 0)], 6, detect=2)
+    detector = dyn_inputs.phase2_detector(runs["skel"])
+    seq = dyn_inputs.split_sequences(detector, "test")[name]
+    x_cond = dyn_inputs.detect_clips(detector, [(seq, 0)], 6, detect=2)
     np.testing.assert_allclose(observed[:, :2], x_cond, atol=1e-6)
     with np.load(out / "voxels.npz") as z:
         assert z["voxels"].shape == (1, 2, 13, 16, 16, 16)

@@ -29,25 +29,25 @@ from nmjax.data.normalize import normalize_sequence
 from nmjax.data.voxelize import voxelize
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics, bone_lengths
-from nmjax.train import checkpoints, dyn, metric_log
+from nmjax.train import checkpoints, dyn, dyn_inputs, metric_log, skel
 
 K = len(PARENTS)
 
 
 def test_missing_inputs_name_the_command_to_run(tmp_path):
     with pytest.raises(FileNotFoundError, match="make train-skel DATA=synth-arm"):
-        runs.find_skel_run("synth-arm", runs_root=tmp_path)
+        run_folder.find_skel_run("synth-arm", runs_root=tmp_path)
     run = tmp_path / "skel-synth-arm-1"
     run.mkdir()
-    assert runs.find_skel_run("synth-arm", runs_root=tmp_path) == run
+    assert run_folder.find_skel_run("synth-arm", runs_root=tmp_path) == run
     with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax extract-skeleton --run {run}")):
-        runs.read_skeleton(run)
+        run_folder.read_skeleton(run)
     atomic.write_json(run / "skeleton.json", {"parents": [1, 0], "order": [0, 1]})
     with pytest.raises(ValueError, match="extract-skeleton"):
-        runs.read_skeleton(run)
+        run_folder.read_skeleton(run)
     # A missing export is an error naming the command, never a hidden phase-1 inference.
     with pytest.raises(FileNotFoundError, match=re.escape(f"nmjax export-keypoints --run {run}")):
-        runs.load_trajectories(run, "train")
+        run_folder.load_trajectories(run, "train")
     assert not list(run.glob("keypoints_*"))
 
 
@@ -61,12 +61,12 @@ def test_main_reports_missing_phase1_run(tmp_path, capsys):
 def test_trajectories_beyond_float32_are_refused(tmp_path):
     np.savez(tmp_path / "k.npz", seq=np.full((3, 2, 4), 1e300))
     with pytest.raises(ValueError, match="float32 range"):
-        runs.read_trajectories(tmp_path / "k.npz")
+        run_folder.read_trajectories(tmp_path / "k.npz")
 
 
 def test_crops_are_contiguous_windows_of_one_sequence(fake_run):
-    traj = runs.load_trajectories(fake_run, "train")
-    poses, starts = dyn.crop_table(traj, 6)
+    traj = run_folder.load_trajectories(fake_run, "train")
+    poses, starts = dyn_inputs.crop_table(traj, 6)
     # valid starts: 30-6+1 + 25-6+1 + 1 (the 4-frame sequence padded to 6)
     assert len(starts) == 25 + 20 + 1 and poses.shape == (30 + 25 + 6, K, 4)
     draws = dyn.CropDraws(jax.random.key(0), len(starts), batch_size=4, block=8)
@@ -76,7 +76,7 @@ def test_crops_are_contiguous_windows_of_one_sequence(fake_run):
     np.testing.assert_array_equal(
         dyn.CropDraws(jax.random.key(0), len(starts), batch_size=4, block=3).at(9), chosen[36:40]
     )
-    crops = dyn.CropTable(poses, starts, 6).batch(chosen)
+    crops = dyn_inputs.CropTable(poses, starts, 6).batch(chosen)
     windows = {
         name: np.lib.stride_tricks.sliding_window_view(x, 6, axis=0).transpose(0, 3, 1, 2)
         for name, x in traj.items()
@@ -109,8 +109,10 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
     def trace(frames):
         cfg = tiny_cfg(fake_run, tmp_path, frames=frames)
         graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-        poses, starts = dyn.crop_table(runs.load_trajectories(fake_run, "train"), frames)
-        x = dyn.CropTable(poses, starts, frames).batch(np.arange(cfg.batch_size))
+        poses, starts = dyn_inputs.crop_table(
+            run_folder.load_trajectories(fake_run, "train"), frames
+        )
+        x = dyn_inputs.CropTable(poses, starts, frames).batch(np.arange(cfg.batch_size))
         step = dyn.make_train_step(graphdef, cfg)
         args = (state, jnp.asarray(x), jax.random.key(0), jnp.int32(0))
         return jaxpr_stats(jax.make_jaxpr(step)(*args)), step, args
@@ -138,7 +140,7 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
 def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path)
     graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-    poses, _ = dyn.crop_table(runs.load_trajectories(fake_run, "train"), cfg.frames)
+    poses, _ = dyn_inputs.crop_table(run_folder.load_trajectories(fake_run, "train"), cfg.frames)
     x = jnp.asarray(np.repeat(poses[None, 3 : 3 + cfg.frames], cfg.batch_size, 0))  # fixed batch
     step = dyn.make_train_step(graphdef, cfg)
     recon = []
@@ -155,7 +157,9 @@ def test_phase2_kl_is_the_mean_of_the_per_dimension_kl(fake_run):
     """The release's reduction: mean over batch, time and latent dimension (not summed over D_z)."""
     cfg = DynamicsConfig(latent=4, hidden=8, mlp=8, posterior_samples=2)
     model = Dynamics(cfg, PARENTS, ORDER, rngs=nnx.Rngs(0))
-    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "train"), 6)[:3])
+    x = jnp.asarray(
+        dyn_inputs.validation_crops(run_folder.load_trajectories(fake_run, "train"), 6)[:3]
+    )
     key = jax.random.key(1)
     _, metrics = dyn.loss_fn(model, x, key, 0.5)
     out = model(x, key)
@@ -170,16 +174,16 @@ def test_phase2_kl_is_the_mean_of_the_per_dimension_kl(fake_run):
 
 def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path / "full", steps=4, ckpt_every=4, val_every=4, log_every=1)
-    run_full, hist_full = runs.train_dynamics(cfg, progress=False)
-    half = replace_fields(cfg, run=str(tmp_path / "half"), steps=2)
-    runs.train_dynamics(half, progress=False)
-    resumed = replace_fields(half, steps=4)
-    run_half, hist_half = runs.train_dynamics(resumed, resume=True, progress=False)
+    full = dyn.train_dynamics(cfg, progress=False)
+    stopped = replace_fields(cfg, run=str(tmp_path / "half"), steps=2)
+    dyn.train_dynamics(stopped, progress=False)
+    half = dyn.train_dynamics(replace_fields(stopped, steps=4), resume=True, progress=False)
+    run_full, run_half = full.run, half.run
     full_state = nnx.state(runs.restore_dynamics(run_full))
     half_state = nnx.state(runs.restore_dynamics(run_half))
     for a, b in zip(jax.tree.leaves(full_state), jax.tree.leaves(half_state), strict=True):
         np.testing.assert_array_equal(a, b)
-    assert hist_half[-1] == hist_full[-1]
+    assert half.validation == full.validation and half.step == full.step == 4
     records = [r for r in metric_log.read_metrics(run_half) if "train/loss" in r]
     expected = [r for r in metric_log.read_metrics(run_full) if "train/loss" in r]
     assert [r["step"] for r in records] == [1, 2, 3, 4]
@@ -204,10 +208,10 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
     ]
     assert any((run / "tb").iterdir())
     with pytest.raises(ValueError, match="--resume"):
-        runs.train_dynamics(dyn_config(parse_dyn([*argv, "--run", str(run)])), progress=False)
+        dyn.train_dynamics(dyn_config(parse_dyn([*argv, "--run", str(run)])), progress=False)
 
     model = runs.restore_dynamics(run)
-    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "test"), 6))
+    x = jnp.asarray(dyn_inputs.validation_crops(run_folder.load_trajectories(fake_run, "test"), 6))
     keypoints, rotations = model.generate(x[:, :2], 10, jax.random.key(0))
     assert keypoints.shape == (x.shape[0], 12, K, 4) and rotations.shape[-2:] == (3, 3)
     assert bool(jnp.all(jnp.isfinite(keypoints)))
@@ -253,16 +257,18 @@ def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_pat
     cfg = small_skel_config(tmp_path)  # an untrained detector: G=8, K=4, phase-1 T=3
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
     spread_convolutions(model)  # keypoints that follow the body, as a trained detector's do
-    detector = runs.Detector.of(model, cfg, tmp_path)
+    detector = skel.Detector.of(model, cfg, tmp_path)
     seq, frames, grid = translated_body(), 4, cfg.data.grid
-    crop = runs.crop_inputs(detector, [seq], [seq], frames)
+    crop = dyn_inputs.crop_inputs(detector, [seq], [seq], frames)
     assert crop.crops.num_starts == 6 and crop.crops.detected == 0  # every start of the 9 frames
 
     # "sequence": one box over the walk, the detector on consecutive windows (export_keypoints).
     whole = runs.sequence_voxels(seq, cfg.data.sample_rate, grid)
     windows = detector.keypoints(runs.sequence_windows(whole, cfg.data.frames))
     trajectory = windows.reshape(-1, *windows.shape[2:])[: seq.num_frames]
-    cut = dyn.sequence_inputs({"train": {"walk": trajectory}, "test": {"walk": trajectory}}, frames)
+    cut = dyn_inputs.sequence_inputs(
+        {"train": {"walk": trajectory}, "test": {"walk": trajectory}}, frames
+    )
 
     def crop_at(inputs, s):
         return inputs.crops.batch(np.array([s]))[0]
@@ -280,7 +286,7 @@ def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_pat
     own, _ = normalize_sequence(seq.vertices[:frames])
     voxels = voxelize(own, grid)[None]
     np.testing.assert_allclose(crop.val[0], detector.keypoints(voxels)[0], atol=1e-6)
-    t_cond = dyn.condition_frames(frames)
+    t_cond = dyn_inputs.condition_frames(frames)
     assert crop.val_cond.shape == (len(crop.val), t_cond, 4, 4)
     np.testing.assert_allclose(
         crop.val_cond[0], detector.keypoints(voxels[:, :t_cond])[0], atol=1e-6
@@ -294,7 +300,7 @@ def test_validation_generates_from_the_given_conditioning_keypoints(fake_run):
         ORDER,
         rngs=nnx.Rngs(0),
     )
-    x = jnp.asarray(dyn.validation_crops(runs.load_trajectories(fake_run, "test"), 6))
+    x = jnp.asarray(dyn_inputs.validation_crops(run_folder.load_trajectories(fake_run, "test"), 6))
     other = x[:, :1] + 0.5  # conditioning keypoints that differ from the crop's own
     key = jax.random.key(0)
     metrics, generated = dyn.evaluate(model, x, other, key)
@@ -310,7 +316,7 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     is resuming a folder of imported weights (checkpoint 0 only)."""
     cadence = dict(steps=2, ckpt_every=2, val_every=2, log_every=1)
     source_cfg = tiny_cfg(fake_run, tmp_path / "source", **cadence)
-    runs.train_dynamics(source_cfg, progress=False)
+    dyn.train_dynamics(source_cfg, progress=False)
     source = jax.tree.leaves(nnx.state(runs.restore_dynamics(tmp_path / "source")))
     seen = {}
 
@@ -321,7 +327,7 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     tuned = dataclasses.replace(
         source_cfg, run=str(tmp_path / "tuned"), init_from=str(tmp_path / "source")
     )
-    runs.train_dynamics(tuned, progress=False, step_hook=hook)
+    dyn.train_dynamics(tuned, progress=False, step_hook=hook)
     for a, b in zip(jax.tree.leaves(seen[0]["model"]), source, strict=True):
         np.testing.assert_array_equal(a, b)
     assert not any(np.any(x) for x in jax.tree.leaves(seen[0]["opt"]))  # Adam's zero state

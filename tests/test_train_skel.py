@@ -76,18 +76,29 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     # The compiled step is shared by the three runs of this process: at most one trace.
     monkeypatch.setattr(skel, "loss_fn", chex.assert_max_traces(skel.loss_fn, n=1))
     cfg = _cfg(three_sequences)
-    straight = skel.train(cfg, tmp_path / "straight", progress=False)
-    runs.finish_phase1(tmp_path / "straight")
-    first = skel.train(
-        replace_fields(cfg, steps=3), tmp_path / "resumed", progress=False, finalize=False
+    straight = skel.train_skeleton(
+        replace_fields(cfg, run=str(tmp_path / "straight")), progress=False
     )
-    assert first["step"] == 3
-    resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
-    assert resumed["start_step"] == 3 and resumed["step"] == 6
+    runs.finish_phase1(tmp_path / "straight")
+    first = skel.train_skeleton(
+        replace_fields(cfg, steps=3, run=str(tmp_path / "resumed")),
+        progress=False,
+        finalize=False,
+    )
+    assert first.step == 3
+    resumed = skel.train_skeleton(
+        replace_fields(cfg, run=str(tmp_path / "resumed")),
+        resume=True,
+        progress=False,
+        finalize=False,
+    )
+    assert resumed.start_step == 3 and resumed.step == 6
     # The state as the trainer built it: with the epochs resolved (2 sequences at B = 1).
     graphdef, state = skel.build(config.resolve_epochs(cfg, 2, 1))
     _restored_equal(tmp_path, skel.abstract_state(state), step=6)
-    assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
+    assert straight.validation["val/loss"] == pytest.approx(
+        resumed.validation["val/loss"], rel=1e-5
+    )
     # The resumed run's log reads like the straight one's: each step once, in order.
     records = metric_log.read_metrics(tmp_path / "resumed")
     train_steps = [r["step"] for r in records if "train/loss" in r]
@@ -97,7 +108,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     first_log = next(r for r in records if "train/loss" in r)
     assert first_log["train/fuse_b"] != 0.0
     assert abs(first_log["train/fuse_w_frame"]) < 0.1 and abs(first_log["train/fuse_w_st"]) < 0.1
-    assert 0.0 < straight["val/heat_far_mass"] < 1.0
+    assert 0.0 < straight.validation["val/heat_far_mass"] < 1.0
     # Adam restarted at the epoch boundaries (2 training sequences at B = 1: steps 2 and 4), so
     # the resumed run crossed one (step 4) after it resumed at step 3, and matched regardless.
     saved = json.loads((tmp_path / "resumed" / "config.json").read_text())
@@ -116,8 +127,10 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert stats["example_keypoints"].shape == (k, 4)
     skeleton = json.loads((run / "skeleton.json").read_text())
     assert len(skeleton["parents"]) == k
-    assert "val/sc_score" in straight and 0.0 < straight["val/sc_score"] <= 1.0
-    assert 0.0 < straight["val/sc_fixed_nodes"] <= 1.0
+    assert (
+        "val/sc_score" in straight.validation and 0.0 < straight.validation["val/sc_score"] <= 1.0
+    )
+    assert 0.0 < straight.validation["val/sc_fixed_nodes"] <= 1.0
     assert list((run / "figures").glob("keypoints_*.png"))
     assert list((run / "tb").iterdir())
     saved = json.loads((run / "config.json").read_text())
@@ -127,11 +140,11 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
             assert len(archive.files) == count
             kp = archive[archive.files[0]]
             assert kp.shape == (8, k, 4)  # the whole 8-frame sequence, windows of T=3 padded
-    # The exported values are the final detector's keypoints, window by window (the last window
-    # padded with the last frame), computed here without the exporter's batching.
+    # The exported values are the best checkpoint's detector's keypoints, window by window (the
+    # last window padded with the last frame), computed here without the exporter's batching.
     from nmjax.data.datasets import load_sequences
 
-    model, _ = runs.load_detector(run, step=6)
+    model, _ = skel.restore_detector(run)
     (seq,) = load_sequences(cfg.data.name, "test", cfg.data.root)
     windows = runs.sequence_windows(runs.sequence_voxels(seq, cfg.data.sample_rate, 8), 3)
     direct = np.concatenate([np.asarray(model.detect(jnp.asarray(w[None]))[1][0]) for w in windows])
@@ -141,16 +154,25 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
 
 def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, tmp_path):
     cfg = _cfg(data_root, ema_decay=0.5)
-    straight = skel.train(cfg, tmp_path / "straight", progress=False, finalize=False)
-    skel.train(replace_fields(cfg, steps=3), tmp_path / "resumed", progress=False)
-    resumed = skel.train(cfg, tmp_path / "resumed", resume=True, progress=False, finalize=False)
+    straight = skel.train_skeleton(
+        replace_fields(cfg, run=str(tmp_path / "straight")), progress=False, finalize=False
+    )
+    skel.train_skeleton(replace_fields(cfg, steps=3, run=str(tmp_path / "resumed")), progress=False)
+    resumed = skel.train_skeleton(
+        replace_fields(cfg, run=str(tmp_path / "resumed")),
+        resume=True,
+        progress=False,
+        finalize=False,
+    )
     graphdef, state = skel.build(cfg)
     assert set(state) == {"model", "opt", "ema"}
     restored = _restored_equal(tmp_path, skel.abstract_state(state), step=6)
-    assert straight["val/loss"] == pytest.approx(resumed["val/loss"], rel=1e-5)
+    assert straight.validation["val/loss"] == pytest.approx(
+        resumed.validation["val/loss"], rel=1e-5
+    )
     # The exported detector carries the average, not the last weights.
     state = restored["straight"]
-    exported, _ = runs.load_detector(tmp_path / "straight", step=6)
+    exported, _ = skel.restore_detector(tmp_path / "straight", step=6)
     last = nnx.merge(graphdef, state["model"])
     average = optax.tree.bias_correction(state["ema"].ema, 0.5, state["ema"].count)
     got = jax.tree.leaves(nnx.state(exported, nnx.Param))
@@ -171,7 +193,12 @@ def test_nan_loss_stops_with_step_and_keeps_last_good_checkpoint(three_sequences
     cfg = _cfg(three_sequences)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
+        skel.train_skeleton(
+            replace_fields(cfg, run=str(tmp_path / "run")),
+            progress=False,
+            finalize=False,
+            step_hook=poison_after(2),
+        )
     graphdef, state = skel.build(cfg)
     with checkpoints.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.latest_step() == 2
@@ -187,7 +214,12 @@ def test_nan_found_between_log_steps_names_its_step_and_saves_nothing_after(
     cfg = _cfg(three_sequences, log_every=4, val_every=6, ckpt_every=2)
 
     with pytest.raises(skel.NonFiniteLossError, match="at step 3"):
-        skel.train(cfg, tmp_path / "run", progress=False, finalize=False, step_hook=poison_after(2))
+        skel.train_skeleton(
+            replace_fields(cfg, run=str(tmp_path / "run")),
+            progress=False,
+            finalize=False,
+            step_hook=poison_after(2),
+        )
     assert run_folder.checkpoint_steps(tmp_path / "run") == [2]
     assert not (tmp_path / "run" / run_folder.METRICS_FILE).exists()  # nothing logged before 4
 
@@ -196,14 +228,14 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences,
     # A limit that has passed once the first step ends: that step is the last one, validated,
     # checkpointed and finalised like step `steps` would be.
     cfg = _cfg(three_sequences, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
-    summary = skel.train(cfg, tmp_path / "run", progress=False)
+    summary = skel.train_skeleton(replace_fields(cfg, run=str(tmp_path / "run")), progress=False)
     runs.finish_phase1(tmp_path / "run")
-    short = skel.train(cfg, tmp_path / "short", progress=False)
+    short = skel.train_skeleton(replace_fields(cfg, run=str(tmp_path / "short")), progress=False)
     runs.finish_phase1(tmp_path / "short", export=False)
-    assert (tmp_path / "short" / "skeleton.json").is_file() and short["step"] == 1
+    assert (tmp_path / "short" / "skeleton.json").is_file() and short.step == 1
     assert not list((tmp_path / "short").glob("keypoints_*.npz"))
-    assert summary["step"] == 1 and summary["stopped_by_time_limit"] is True
-    assert "val/loss" in summary
+    assert summary.step == 1 and summary.stop_reason == "time_limit"
+    assert "val/loss" in summary.validation
     with checkpoints.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.all_steps() == [1]
     assert (tmp_path / "run" / "skeleton.json").is_file()
@@ -215,8 +247,12 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences,
         assert sorted(a.files) == sorted(b.files)
         for name in a.files:
             np.testing.assert_array_equal(a[name], b[name])
-    full = skel.train(_cfg(three_sequences), tmp_path / "full", progress=False, finalize=False)
-    assert full["step"] == 6 and full["stopped_by_time_limit"] is False
+    full = skel.train_skeleton(
+        replace_fields(_cfg(three_sequences), run=str(tmp_path / "full")),
+        progress=False,
+        finalize=False,
+    )
+    assert full.step == 6 and full.stop_reason == "steps"
 
 
 @pytest.mark.parametrize(
@@ -266,9 +302,9 @@ def test_overrides_parse_types():
 def test_existing_run_refused_and_corrupt_checkpoint_left_untouched(three_sequences, tmp_path):
     cfg = _cfg(three_sequences, steps=2)
     run = tmp_path / "run"
-    skel.train(cfg, run, progress=False, finalize=False)
+    skel.train_skeleton(replace_fields(cfg, run=str(run)), progress=False, finalize=False)
     with pytest.raises(ValueError, match="--resume"):
-        skel.train(cfg, run, progress=False, finalize=False)
+        skel.train_skeleton(replace_fields(cfg, run=str(run)), progress=False, finalize=False)
     blobs = [
         p for p in (run / "checkpoints" / "2").rglob("*") if p.is_file() and p.parent.name == "d"
     ]
@@ -362,9 +398,11 @@ def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp
 
     cfg = _cfg(three_sequences, steps=2)
     source = tmp_path / "source"
-    skel.train(cfg, source, progress=False, finalize=False)
+    skel.train_skeleton(replace_fields(cfg, run=str(source)), progress=False, finalize=False)
     tuned = replace_fields(cfg, steps=1, init_from=str(source))
-    skel.train(tuned, tmp_path / "tuned", progress=False, finalize=False)
+    skel.train_skeleton(
+        replace_fields(tuned, run=str(tmp_path / "tuned")), progress=False, finalize=False
+    )
 
     def first_loss(run):
         return next(r["train/loss"] for r in metric_log.read_metrics(run) if "train/loss" in r)
@@ -374,7 +412,7 @@ def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp
     resolved = config.resolve_epochs(tuned, 2, 1)  # as the trainer resolves it
     graphdef, state = skel.build(resolved)
     mesh = parallel.data_mesh()
-    weights = {**state, "model": nnx.state(runs.load_detector(source)[0])}
+    weights = {**state, "model": nnx.state(skel.restore_detector(source)[0])}
     batch = next(pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed))
     _, eval_fn = skel.make_steps(graphdef, resolved, mesh)
     terms, _ = eval_fn(

@@ -14,7 +14,7 @@ import pytest
 from browser import Chromium, require_browser
 from tiny_runs import PARENTS, make_runs
 
-from nmjax import atomic, runs, tasks, view
+from nmjax import atomic, run_folder, runs, tasks, view
 from nmjax.cli import main as nmjax_main
 
 K = len(PARENTS)
@@ -126,16 +126,16 @@ def tiny(tmp_path_factory):
     tree = skeleton_from_parents(np.array(PARENTS))
     pruned, keep = prune(tree, INTENSITIES)  # as `extract_run_skeleton` stores them
     tree.save(
-        skel / runs.SKELETON_FILE,
+        skel / run_folder.SKELETON_FILE,
         intensities=INTENSITIES,
         pruned_parents=list(pruned.parents),
         keep=keep.tolist(),
     )
     affinity = np.random.default_rng(1).random((2, K, K)).astype(np.float32)
     affinity[:, np.arange(K), np.arange(K)] = 0.0
-    atomic.save_npy(skel / runs.AFFINITY_FILE, affinity)
+    atomic.save_npy(skel / run_folder.AFFINITY_FILE, affinity)
     atomic.save_npz(
-        skel / runs.STATS_FILE,
+        skel / run_folder.STATS_FILE,
         intensities=INTENSITIES.astype(np.float32),
         rest_positions=np.zeros((K, 3), np.float32),
         example_voxels=np.zeros((16, 16, 16), np.float32),
@@ -156,7 +156,7 @@ def test_phase1_scene_follows_the_frame_slider(tiny):
     from nmjax.metrics import voxel_points
     from nmjax.skeleton import influence
 
-    trajectories = runs.load_trajectories(tiny["skel"], "train")
+    trajectories = run_folder.load_trajectories(tiny["skel"], "train")
     assert len(trajectories) == 2
     with opened(tiny["skel"], split="train") as viewer:
         names = {
@@ -179,7 +179,9 @@ def test_phase1_scene_follows_the_frame_slider(tiny):
         grey = [tuple(c) == view.GREY for c in pose.keypoints.batched_colors]
         assert grey == list(INTENSITIES < 0.2)  # the pruned nodes 2 and 4
         np.testing.assert_array_equal(pose.pairs, KEPT_BONES)
-        _, strength = view.affinity_pairs(influence(np.load(tiny["skel"] / runs.AFFINITY_FILE)))
+        _, strength = view.affinity_pairs(
+            influence(np.load(tiny["skel"] / run_folder.AFFINITY_FILE))
+        )
         np.testing.assert_allclose(viewer.affinity.batched_opacities, strength, rtol=1e-6)
         for t in (4, len(keypoints) - 1, 0):
             viewer.frame.value = t
@@ -230,7 +232,7 @@ def test_phase1_scene_follows_the_frame_slider(tiny):
 @pytest.mark.slow  # compiles generation, both interpolations and Slerp: ~10 s
 def test_phase2_scene_shows_generation_and_interpolation(tiny):
     cond, gen, gap = 2, 3, 3
-    trajectories = runs.load_trajectories(tiny["skel"], "test")
+    trajectories = run_folder.load_trajectories(tiny["skel"], "test")
     options = dict(cond=cond, gen=gen, samples=2, gap=gap, trajectories=2)
     with opened(tiny["nm"], **options) as viewer:
         panels = ["observed", "sample_1", "sample_2"]
@@ -262,7 +264,7 @@ def test_phase2_scene_draws_every_panel_from_the_task_outputs(tiny, monkeypatch)
     interpolation give known motions (each panel its own offset of the sequence), and every
     panel draws its motion frame by frame, for the sequence the dropdown picks."""
     cond, gen, gap = 2, 3, 3
-    trajectories = runs.load_trajectories(tiny["skel"], "test")
+    trajectories = run_folder.load_trajectories(tiny["skel"], "test")
     asked = []
 
     def generate(self, name, cond, gen, samples, seed):
@@ -386,7 +388,7 @@ def test_record_writes_a_playback_file_of_every_frame(tiny, tmp_path):
     inner = zstandard.ZstdDecompressor().decompress(raw[8:], max_output_size=size)
     header = int.from_bytes(inner[:8], "little")
     recording = msgspec.msgpack.decode(inner[8 : 8 + header])
-    trajectories = runs.load_trajectories(tiny["skel"], "test")
+    trajectories = run_folder.load_trajectories(tiny["skel"], "test")
     frames = len(trajectories[sorted(trajectories)[0]])  # the sequence opened by default
     assert recording["durationSeconds"] == pytest.approx(frames / 10)
     named = {m[1].get("name") for m in recording["messages"] if isinstance(m[1], dict)}

@@ -15,9 +15,9 @@ waiting for data vs computing, compile time and peak memory.
   from the root) stand in for a phase-1 run; the step's cost does not depend on the values.
   "load" is cutting the step's drawn crops from the table on the host.
 - Detect: the phase-1 preset's (untrained) detector on phase-2 crops of `--data` (T of the phase-2
-  preset, B of the phase-1 preset per call), forward only, as `nmjax.runs.DetectedCrops` runs it:
-  "load" normalises and voxelises the crops (`runs.clip_voxels`), "compute" is the compiled
-  detector. Its frames/s sits beside the phase-1 step's (forward and backward).
+  preset, B of the phase-1 preset per call), forward only, as `dyn_inputs.DetectedCrops` runs
+  it: "load" normalises and voxelises the crops (`dyn_inputs.clip_voxels`), "compute" is the
+  compiled detector. Its frames/s sits beside the phase-1 step's (forward and backward).
 
 Compile time is `jit(...).lower(...).compile()`, timed on its own; the compiled executable is then
 the one that runs. Memory: the compiled step's `memory_analysis()` (argument, output, temporary
@@ -61,7 +61,7 @@ METRICS = {
     "frames_per_s": "steps_per_s x B x T: training frames consumed per second",
     "load_s_per_step": "phase 1: wait for the next grain batch plus host -> device placement, "
     "blocked until ready; phase 2: cutting the drawn crops on the host; detect: normalising and "
-    "voxelising the crops (`runs.clip_voxels`)",
+    "voxelising the crops (`dyn_inputs.clip_voxels`)",
     "compute_s_per_step": "the compiled step until its outputs are ready, mean over the timed "
     "steps (compute_s_median: their median)",
     "compile_s": "jit(step).lower(...).compile(), timed on its own; the executable then runs",
@@ -227,13 +227,13 @@ def random_walk(num_keypoints: int, frames: int = 400, seed: int = 0) -> np.ndar
 
 def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int) -> dict:
     """Times the phase-2 train step of `cfg` (a DynTrainConfig) on random-walk trajectories."""
-    from nmjax.train import dyn, parallel
+    from nmjax.train import dyn, dyn_inputs, parallel
 
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--set dyn:batch_size=")
     parents, order = hand_tree(num_keypoints)
-    table = dyn.CropTable(
-        *dyn.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames), cfg.frames
+    table = dyn_inputs.CropTable(
+        *dyn_inputs.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames), cfg.frames
     )
     draws = dyn.CropDraws(jax.random.key(cfg.seed), table.num_starts, cfg.batch_size)
     key = parallel.replicate(jax.random.key(cfg.seed), mesh)
@@ -283,10 +283,9 @@ def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) ->
     """Times the detector on phase-2 crops of `frames` frames (`cfg` a SkelTrainConfig)."""
     from flax import nnx
 
-    from nmjax import runs
     from nmjax.data.datasets import load_sequences
     from nmjax.data.synthetic import ensure_dataset
-    from nmjax.train import skel
+    from nmjax.train import dyn_inputs, skel
 
     skel.check_config(cfg)
     root = ensure_dataset(cfg.data.name, cfg.data.root)  # generated here, untimed
@@ -294,17 +293,19 @@ def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) ->
     clips = [
         (seq, int(t))
         for seq in load_sequences(cfg.data.name, "train", root)
-        for t in runs.crop_starts(seq.num_frames, frames, rate)
+        for t in dyn_inputs.crop_starts(seq.num_frames, frames, rate)
     ]
     graphdef, state = skel.build(cfg)
-    detector = runs.Detector.of(nnx.merge(graphdef, state["model"]), cfg, "bench")
+    detector = skel.Detector.of(nnx.merge(graphdef, state["model"]), cfg, "bench")
 
     def voxels(i: int) -> jax.Array:
         part = [clips[(i * b + j) % len(clips)] for j in range(b)]
-        return jnp.asarray(np.stack([runs.clip_voxels(s, t, frames, cfg.data) for s, t in part]))
+        return jnp.asarray(
+            np.stack([dyn_inputs.clip_voxels(s, t, frames, cfg.data) for s, t in part])
+        )
 
     compiled, compile_s = _timed_compile(
-        runs.detect_batch, detector.graphdef, detector.state, voxels(0)
+        skel.detect_batch, detector.graphdef, detector.state, voxels(0)
     )
     load, compute = [], []
     for i in range(warmup + steps):

@@ -84,6 +84,12 @@ def default_run_dir(phase: str, data: str, model: str | None = None) -> Path:
     return RUNS_ROOT / "-".join([phase, data, *([model] if model else []), stamp])
 
 
+def config_run_dir(run: str | None, phase: str, data: str, model: str | None = None) -> Path:
+    """The folder a config's `run` names, else a new `default_run_dir(phase, data, model)`: how
+    both phases' entries choose their run folder."""
+    return Path(run) if run else default_run_dir(phase, data, model)
+
+
 def find_skel_run(
     data: str, skel_run: str | Path | None = None, runs_root: str | Path = RUNS_ROOT
 ) -> Path:

@@ -1,14 +1,11 @@
-"""Trained models out of run folders: the phase-1 detector (`Detector`) and its inference over
-whole sequences and clips, skeleton extraction (`extract_run_skeleton`), the keypoint export
-(`export_keypoints`), the phase-2 model (`restore_dynamics`).
+"""Trained models out of run folders, for the tasks and evaluations: the phase-1 detector's
+inference over whole sequences and the keypoint export (`export_keypoints`), the artefacts that
+end phase 1 (`finish_phase1`), skeleton extraction (`extract_run_skeleton`), the phase-2 model
+(`restore_dynamics`, `load_phase2`, `phase2_runs`).
 
 What a run folder holds, its file names and the readers and writers of each file are
-`nmjax.run_folder`'s (contract C10).
-
-Phase 2 reads its keypoints in one of two ways (`DynTrainConfig.inputs`): "crop", the release's,
-runs the phase-1 detector on every clip normalised with its own bounding box (`clip_voxels`,
-`detect_clips`, `crop_inputs`); "sequence" reads the whole-sequence export keypoints_*.npz, a
-cache that needs no detector (`load_trajectories`).
+`nmjax.run_folder`'s (contract C10). The restored detector (`nmjax.train.skel.Detector`) and
+what phase 2 is fed (`nmjax.train.dyn_inputs`) sit with the trainers below, which build on them.
 
 Nothing here runs a model or writes a file as a side effect of reading: a missing export is an
 error naming the command that makes it.
@@ -16,32 +13,22 @@ error naming the command that makes it.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import os
 import sys
 from pathlib import Path
-from typing import Any
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-from flax import nnx
 
-from nmjax import run_folder
-from nmjax.config import DynTrainConfig, SkelTrainConfig, resolve_epochs
+from nmjax.config import DynTrainConfig
 from nmjax.data.datasets import pad_with_last
-from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics
 from nmjax.run_folder import (
     CONFIG_FILE,
     FIGURES_DIR,
     SPLITS,
     checkpoint_steps,
-    find_skel_run,
     keypoints_file,
     load_config,
-    load_trajectories,
     read_skeleton,
     read_skeleton_inputs,
     write_skeleton,
@@ -54,107 +41,10 @@ from nmjax.skeleton import (
     extract_skeleton,
     prune,
 )
-from nmjax.train import dyn, parallel, skel
-
-# The run folder's names that the application modules (evaluate, view, tasks, export, release)
-# read from here; `nmjax.run_folder` owns them.
-AFFINITY_FILE = run_folder.AFFINITY_FILE
-SKELETON_FILE = run_folder.SKELETON_FILE
-STATS_FILE = run_folder.STATS_FILE
-motion_format = run_folder.motion_format
-pruned_skeleton = run_folder.pruned_skeleton
-read_trajectories = run_folder.read_trajectories
-run_kind = run_folder.run_kind
-skeleton_intensities = run_folder.skeleton_intensities
-
-CLIP_CHUNK = 8  # detector batches voxelised at once by `detect_clips` (bounds host memory)
-
+from nmjax.train import dyn, parallel
+from nmjax.train.skel import Detector
 
 # --- phase 1: the detector --------------------------------------------------------------------
-
-
-def load_detector(run: str | Path, step: int | None = None) -> tuple[KeypointDetector, Any]:
-    """The trained detector of a phase-1 run: (model, cfg).
-
-    Restores `step`, else the best checkpoint by validation loss, else the latest.
-    """
-    return skel.restore_detector(run, step)
-
-
-@dataclasses.dataclass
-class Detector:
-    """A restored phase-1 detector with compiled detect / reconstruct / decode functions.
-
-    The functions are module-level jits keyed by the (static) graphdef, so every Detector of one
-    configuration shares their compilations.
-    """
-
-    run: Path
-    cfg: SkelTrainConfig
-    graphdef: Any
-    state: Any
-
-    @classmethod
-    def load(cls, run: str | Path, step: int | None = None) -> Detector:
-        """The detector of checkpoint `step` (default: the best, see `load_detector`)."""
-        model, cfg = load_detector(run, step)
-        return cls.of(model, cfg, run)
-
-    @classmethod
-    def of(cls, model: KeypointDetector, cfg: SkelTrainConfig, run: str | Path) -> Detector:
-        graphdef, state = nnx.split(model)
-        # A trained state may be replicated over several hosts; inference here is local.
-        return cls(Path(run), cfg, graphdef, parallel.to_local(state))
-
-    def _batches(self, voxels: np.ndarray, fn) -> list[Any]:
-        """`fn(graphdef, state, batch)` on `voxels` in batches of the training batch size, the
-        last padded with the last crop, so one compiled shape serves every call."""
-        b = self.cfg.data.batch_size
-        padded = pad_with_last(voxels, -(-len(voxels) // b) * b)
-        return [
-            jax.device_get(fn(self.graphdef, self.state, jnp.asarray(padded[i : i + b])))
-            for i in range(0, len(padded), b)
-        ]
-
-    def run_batches(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints (C, T, K, 4) and reconstructions (C, T, G, G, G) of crops (C, T, G, G, G)."""
-        outs = self._batches(voxels, _forward)
-        n = len(voxels)
-        return (
-            np.concatenate([kp for kp, _ in outs])[:n],
-            np.concatenate([recon for _, recon in outs])[:n],
-        )
-
-    def keypoints(self, voxels: np.ndarray) -> np.ndarray:
-        """Keypoints (C, T, K, 4) of crops (C, T, G, G, G), without the reconstruction."""
-        return np.concatenate(self._batches(voxels, detect_batch))[: len(voxels)]
-
-    def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
-        """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
-        return np.asarray(
-            _decode(self.graphdef, self.state, jnp.asarray(keypoints), jnp.asarray(first_voxels))
-        )
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _forward(graphdef, state, voxels):
-    out = nnx.merge(graphdef, state)(voxels)
-    return out["keypoints"], out["recon"]
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def detect_batch(graphdef, state, voxels):
-    """Keypoints (B, T, K, 4) of crops (B, T, G, G, G): the detector's forward without the
-    decoder, compiled once per shape (what `Detector.keypoints` and `nmjax bench --phase detect`
-    run)."""
-    return nnx.merge(graphdef, state).detect(voxels)[1]
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _decode(graphdef, state, keypoints, first_voxels):
-    model = nnx.merge(graphdef, state)
-    features = model.features(first_voxels)  # c_1 of frame ts: f_feat sees one frame
-    return model.decode(keypoints, features, first_voxels)
 
 
 def sequence_points(seq, sample_rate: int) -> tuple[np.ndarray, np.ndarray | None]:
@@ -214,7 +104,12 @@ def export_keypoints(
 
 def finish_phase1(run: str | Path, *, export: bool = True) -> None:
     """The artefacts phase 2 needs after training: skeleton.json and (with `export`)
-    keypoints_{train,test}.npz of the run's final detector (its latest checkpoint).
+    keypoints_{train,test}.npz.
+
+    Both come from the run's best checkpoint by validation loss: the skeleton from the affinity
+    `skel.train_skeleton` wrote of it, the keypoints from `Detector.load`'s detector, the one
+    the release keeps and every later reader (tasks, evaluation, phase 2's "crop" inputs)
+    restores. The last checkpoint may be a worse model that merely came later.
 
     Every host takes part in restoring the detector; only process 0 writes.
     """
@@ -230,201 +125,10 @@ def finish_phase1(run: str | Path, *, export: bool = True) -> None:
                 file=sys.stderr,
             )
     if export:
-        detector = Detector.load(run, checkpoint_steps(run)[-1])
+        detector = Detector.load(run)
         if parallel.is_primary():
             for split in SPLITS:
                 export_keypoints(run, split, detector=detector)
-
-
-# --- phase 1 -> phase 2: keypoints of clips, each normalised on its own ("crop" inputs) ----------
-
-
-def crop_starts(num_frames: int, frames: int, sample_rate: int) -> np.ndarray:
-    """Every first frame of a crop of `frames` frames taken every `sample_rate` frames: the starts
-    the release's random crop draws from (0 alone for a shorter sequence, padded when cut)."""
-    from nmjax.data.datasets import crop_span
-
-    return np.arange(max(num_frames - crop_span(frames, sample_rate), 0) + 1)
-
-
-def clip_voxels(
-    seq, start: int, frames: int, data: Any, box_frames: int | None = None
-) -> np.ndarray:
-    """(frames, G, G, G): a clip of `seq` normalised on its own bounding box and voxelised.
-
-    Frames start, start + r, ... (r = `data.sample_rate`, padded with the last frame past the
-    end), mapped into [-1, 1)^3 with the box of the clip's first `box_frames` frames (default: all
-    of them, as a training crop; DESIGN section 4) and voxelised on `data.grid`. A smaller box
-    keeps a longer clip in the frame of its first crop; points that leave the box land in the
-    border cells.
-
-    Args:
-      seq: a `nmjax.data.datasets.Sequence`.
-      start: first frame, in frames of the original sequence.
-      frames: frames of the clip.
-      data: the phase-1 run's `DataConfig` (grid, sample rate).
-      box_frames: how many leading frames the bounding box spans.
-    """
-    from nmjax.data.datasets import crop_sequence
-    from nmjax.data.normalize import normalize_sequence
-    from nmjax.data.voxelize import voxelize
-
-    points, _ = crop_sequence(seq, frames, data.sample_rate, start)
-    points, _ = normalize_sequence(points, box_frames=box_frames)
-    return voxelize(points, data.grid)
-
-
-def detect_clips(
-    detector: Detector,
-    clips: list[tuple[Any, int]],
-    frames: int,
-    detect: int | None = None,
-    *,
-    desc: str | None = None,
-) -> np.ndarray:
-    """Keypoints of clips each normalised on its own: (C, detect, K, 4).
-
-    Every clip (sequence, start) of `frames` frames is normalised with its own bounding box and
-    voxelised (`clip_voxels`); its first `detect` frames (default all) go through the detector
-    together, so the detector's temporal mean (Eq. 6) is the mean over exactly those frames.
-
-    Args:
-      detector: the phase-1 detector.
-      clips: [(Sequence, start frame)].
-      frames: frames of each clip (its bounding box spans all of them).
-      detect: leading frames run through the detector.
-      desc: a tqdm bar with this label over the clips; None: no bar.
-    """
-    from tqdm import tqdm
-
-    detect = frames if detect is None else detect
-    chunk = detector.cfg.data.batch_size * CLIP_CHUNK
-    out = []
-    with tqdm(total=len(clips), desc=desc, unit="clip", disable=desc is None) as bar:
-        for i in range(0, len(clips), chunk):
-            part = clips[i : i + chunk]
-            voxels = np.stack(
-                [clip_voxels(seq, start, frames, detector.cfg.data)[:detect] for seq, start in part]
-            )
-            out.append(detector.keypoints(voxels))
-            bar.update(len(part))
-    if not out:
-        return np.zeros((0, detect, detector.cfg.model.num_keypoints, 4), np.float32)
-    return np.concatenate(out).astype(np.float32)
-
-
-def validation_clips(seqs: list[Any], frames: int, sample_rate: int) -> list[tuple[Any, int]]:
-    """Deterministic validation clips: non-overlapping crops of every sequence, at most 64 spread
-    over all of them (as `dyn.validation_crops` picks windows of whole sequences)."""
-    from nmjax.data.datasets import crop_span
-
-    span = crop_span(frames, sample_rate)
-    clips = [
-        (seq, int(t))
-        for seq in seqs
-        for t in crop_starts(seq.num_frames, frames, sample_rate)
-        if t % span == 0
-    ]
-    if len(clips) > dyn.MAX_VAL_CROPS:
-        keep = np.linspace(0, len(clips) - 1, dyn.MAX_VAL_CROPS).astype(int)
-        clips = [clips[i] for i in keep]
-    return clips
-
-
-class DetectedCrops:
-    """The "crop" route's training crops: the detector on each crop (`detect_clips`, normalised
-    on its own box), run when a batch first draws the crop and kept for every later draw.
-
-    Detector frame passes: at most min(starts, crops drawn) x frames, and none before the first
-    step. A crop's keypoints depend on nothing but its (sequence, start), so a resumed run, which
-    starts with none kept, recomputes the same ones.
-
-    Args:
-      detector: the phase-1 run's detector.
-      clips: [(Sequence, start frame)] every training crop the steps draw from.
-      frames: T of phase 2.
-    """
-
-    def __init__(self, detector: Detector, clips: list[tuple[Any, int]], frames: int):
-        self.detector, self.clips, self.frames = detector, clips, frames
-        self._kept: dict[int, np.ndarray] = {}
-
-    @property
-    def num_starts(self) -> int:
-        return len(self.clips)
-
-    @property
-    def num_keypoints(self) -> int:
-        return self.detector.cfg.model.num_keypoints
-
-    @property
-    def detected(self) -> int:
-        """Crops detected so far (each once): the detector ran on `detected x frames` frames."""
-        return len(self._kept)
-
-    def batch(self, chosen: np.ndarray) -> np.ndarray:
-        """(B, T, K, 4): the crops at indices `chosen` (B,), detecting the new ones together."""
-        chosen = [int(i) for i in chosen]
-        new = sorted(set(chosen) - self._kept.keys())
-        if new:
-            found = detect_clips(self.detector, [self.clips[i] for i in new], self.frames)
-            self._kept.update(zip(new, found, strict=True))
-        return np.stack([self._kept[i] for i in chosen])
-
-    def postfix(self) -> dict[str, str]:
-        """For the progress bar: crops detected so far of the starts."""
-        return {"crops_detected": f"{self.detected}/{self.num_starts}"}
-
-
-def crop_inputs(
-    detector: Detector, train: list[Any], test: list[Any], frames: int
-) -> dyn.Phase2Inputs:
-    """The "crop" phase-2 inputs: the detector on each crop, each normalised on its own.
-
-    Training: a crop of `frames` frames at every start of every training sequence
-    (`crop_starts`), the crops the release's random crop draws from; the steps draw them
-    uniformly and each is detected when first drawn (`DetectedCrops`). Validation: the
-    `validation_clips` of the test sequences (at most 64), detected now, and for their generation
-    the first T_cond frames of each clip detected on their own (`Dynamics.generate`'s
-    conditioning, as in the release).
-
-    Args:
-      detector: the phase-1 run's detector.
-      train, test: the `Sequence`s of the two splits.
-      frames: T of phase 2.
-    """
-    rate = detector.cfg.data.sample_rate
-    clips = [(seq, int(t)) for seq in train for t in crop_starts(seq.num_frames, frames, rate)]
-    val = validation_clips(test, frames, rate)
-    val_x = detect_clips(detector, val, frames)
-    val_cond = detect_clips(detector, val, frames, detect=dyn.condition_frames(frames))
-    return dyn.Phase2Inputs(DetectedCrops(detector, clips, frames), val_x, val_cond)
-
-
-def split_sequences(detector: Detector, split: str) -> dict[str, Any]:
-    """{name: Sequence} of a split of the detector's dataset (its phase-1 run's data and root)."""
-    from nmjax.data.datasets import load_sequences
-
-    data = detector.cfg.data
-    return {seq.name: seq for seq in load_sequences(data.name, split, data.root)}
-
-
-def phase2_detector(skel_run: str | Path) -> Detector:
-    """The detector phase 2 runs on crops ("crop" inputs): the phase-1 run's best checkpoint, else
-    its latest (`Detector.load`, as `nmjax export-keypoints` and the tasks).
-
-    Raises:
-      FileNotFoundError: the folder holds no detector checkpoint (names both ways out).
-    """
-    skel_run = Path(skel_run)
-    has_config = (skel_run / CONFIG_FILE).is_file()
-    if not has_config or not checkpoint_steps(skel_run):
-        raise FileNotFoundError(
-            f"{skel_run} holds no phase-1 detector checkpoint, and phase-2 inputs 'crop' run the "
-            "detector on every crop; give a trained phase-1 run (--skel-run) or train on its "
-            "exported keypoints with --set inputs=sequence"
-        )
-    return Detector.load(skel_run)
 
 
 # --- phase 1: the skeleton --------------------------------------------------------------------
@@ -478,60 +182,6 @@ def extract_run_skeleton(
 
 
 # --- phase 2 ----------------------------------------------------------------------------------
-
-
-def train_dynamics(
-    cfg: DynTrainConfig, *, resume: bool = False, progress: bool = True, **kwargs: Any
-) -> tuple[Path, list[dict[str, float]]]:
-    """Phase 2 on the phase-1 run `cfg.skel_run` (default: the latest of `cfg.data`), then
-    `dyn.train`. The resolved phase-1 folder is stored in the run's config.json.
-
-    Reads the run's skeleton and, by `cfg.inputs`, its detector and dataset ("crop": the
-    detector runs on each crop when a batch first draws it, `crop_inputs`) or its exported
-    keypoints ("sequence"). Everything that can be refused is checked before the run folder is
-    made.
-    """
-    dyn.check_config(cfg)
-    skel_run = find_skel_run(cfg.data, cfg.skel_run)
-    skeleton = read_skeleton(skel_run)
-    cfg = dataclasses.replace(cfg, skel_run=str(skel_run))
-    if cfg.inputs == "sequence":
-        trajectories = {split: load_trajectories(skel_run, split) for split in SPLITS}
-        for split, traj in trajectories.items():
-            k = {x.shape[1] for x in traj.values()}
-            if k != {skeleton.num_keypoints}:
-                raise ValueError(
-                    f"{keypoints_file(skel_run, split)} has K={sorted(k)} keypoints but "
-                    f"skeleton.json has {skeleton.num_keypoints} joints; re-export the keypoints "
-                    f"with `nmjax export-keypoints --run {skel_run}`"
-                )
-
-        def inputs() -> dyn.Phase2Inputs:
-            return dyn.sequence_inputs(trajectories, cfg.frames)
-
-    else:
-        detector = phase2_detector(skel_run)
-        if detector.cfg.model.num_keypoints != skeleton.num_keypoints:
-            raise ValueError(
-                f"the detector of {skel_run} has K={detector.cfg.model.num_keypoints} keypoints "
-                f"but skeleton.json has {skeleton.num_keypoints} joints; extract the skeleton "
-                f"again with `nmjax extract-skeleton --run {skel_run}`"
-            )
-        seqs = {split: list(split_sequences(detector, split).values()) for split in SPLITS}
-
-        def inputs() -> dyn.Phase2Inputs:
-            return crop_inputs(detector, seqs["train"], seqs["test"], cfg.frames)
-
-    train_count = len(trajectories["train"]) if cfg.inputs == "sequence" else len(seqs["train"])
-    cfg = resolve_epochs(cfg, train_count, cfg.batch_size)
-    return dyn.train(
-        cfg,
-        (skeleton.parents, skeleton.order),
-        inputs,
-        resume=resume,
-        progress=progress,
-        **kwargs,
-    )
 
 
 def restore_dynamics(run: str | Path, step: int | None = None) -> Dynamics:

@@ -35,13 +35,13 @@ def import_release(argv: list[str]) -> int:
         "dataset's test split, which must then be prepared",
     )
     args = p.parse_args(argv)
-    from nmjax import release, runs
+    from nmjax import release, run_folder
 
     skel_run, dyn_run = release.import_release(
         args.checkpoint, args.options, args.run, overwrite=args.overwrite, example=args.example
     )
-    skeleton = runs.read_skeleton(skel_run)
-    kept = json.loads((skel_run / runs.SKELETON_FILE).read_text()).get("keep", [])
+    skeleton = run_folder.read_skeleton(skel_run)
+    kept = json.loads((skel_run / run_folder.SKELETON_FILE).read_text()).get("keep", [])
     record = json.loads((skel_run / release.PROVENANCE_FILE).read_text())
     print(
         f"nmjax import-release: {record['tensors']} tensors ({record['values']:,} values, sha256 "

@@ -16,7 +16,7 @@ from nmjax.cli import parser
 
 
 def extract_skeleton(argv: list[str]) -> int:
-    from nmjax import runs
+    from nmjax import run_folder, runs
     from nmjax.skeleton import DEFAULT_NEIGHBORS, METHODS, PRUNE_THRESHOLD
 
     p = parser(
@@ -51,7 +51,7 @@ def extract_skeleton(argv: list[str]) -> int:
     )
     seconds = time.perf_counter() - start
     print(
-        f"{Path(args.run) / runs.SKELETON_FILE}: K={skeleton.num_keypoints}, root "
+        f"{Path(args.run) / run_folder.SKELETON_FILE}: K={skeleton.num_keypoints}, root "
         f"{skeleton.root}, depth {skeleton.depth}, parents {list(skeleton.parents)} "
         f"({seconds:.2f} s with figure)"
     )
@@ -59,7 +59,8 @@ def extract_skeleton(argv: list[str]) -> int:
 
 
 def export_keypoints(argv: list[str]) -> int:
-    from nmjax import runs
+    from nmjax import run_folder, runs
+    from nmjax.train import skel
 
     p = parser(
         "export-keypoints",
@@ -67,14 +68,14 @@ def export_keypoints(argv: list[str]) -> int:
         "RUN/keypoints_SPLIT.npz (the trajectories phase 2 trains on).",
     )
     p.add_argument("--run", required=True, metavar="RUN", help="phase-1 run folder")
-    p.add_argument("--split", nargs="+", default=list(runs.SPLITS), choices=runs.SPLITS)
+    p.add_argument("--split", nargs="+", default=list(run_folder.SPLITS), choices=run_folder.SPLITS)
     p.add_argument(
         "--step", type=int, default=None, help="checkpoint (default: the best, else the latest)"
     )
     args = p.parse_args(argv)
     if not Path(args.run).is_dir():
         raise FileNotFoundError(f"--run {args.run} does not exist; give a phase-1 run folder")
-    detector = runs.Detector.load(args.run, args.step)
+    detector = skel.Detector.load(args.run, args.step)
     for split in args.split:
         print(f"wrote {runs.export_keypoints(args.run, split, detector=detector)}")
     return 0

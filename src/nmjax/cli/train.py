@@ -67,6 +67,7 @@ def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume
     )
     p.add_argument("--run", default=None, help=f"run folder (default runs/{what}-DATA-STAMP)")
     p.add_argument("--resume", action="store_true", help="continue --run from its checkpoint")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     p.add_argument(
         "--init-from",
         default=None,
@@ -154,7 +155,6 @@ def skel_parser() -> Parser:
 
     p = parser("train-skel", "Phase 1: train the keypoint detector and affinity (paper Eq. 23).")
     p.add_argument("--data", default=None, help=f"one of {', '.join(DATASETS)} (synth-hand)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing --run")
     p.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
     p.add_argument(
         "--fit-minutes",
@@ -209,18 +209,24 @@ def train_skel(argv: list[str]) -> int:
         if args.steps is not None:
             p.error("give --steps or --fit-minutes, not both")
     _initialize(args)
-    from nmjax import run_folder, runs
+    from nmjax import runs
     from nmjax.train import skel
 
     cfg = skel_config(args)
     if args.fit_minutes is not None:
         cfg = fit_to_minutes(cfg, args, started)
-    run = Path(cfg.run) if cfg.run else run_folder.default_run_dir("skel", cfg.data.name)
-    summary = skel.train(
-        cfg, run, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
+    summary = skel.train_skeleton(
+        cfg, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
     )
-    runs.finish_phase1(run)
-    print(json.dumps(summary, indent=1, default=float))
+    runs.finish_phase1(summary.run)
+    record = {
+        "run": str(summary.run),
+        "start_step": summary.start_step,
+        "step": summary.step,
+        "stopped_by_time_limit": summary.stop_reason == "time_limit",
+        **summary.validation,
+    }
+    print(json.dumps(record, indent=1, default=float))
     return 0
 
 
@@ -272,11 +278,14 @@ def train_dyn(argv: list[str]) -> int:
     args = p.parse_args(argv)
     positive(p, args, "steps", "batch_size")
     _initialize(args)
-    from nmjax import runs
+    from nmjax.train import dyn
 
-    run_dir, history = runs.train_dynamics(
-        dyn_config(args), resume=args.resume, progress=not args.no_progress
+    summary = dyn.train_dynamics(
+        dyn_config(args),
+        resume=args.resume,
+        overwrite=args.overwrite,
+        progress=not args.no_progress,
     )
-    last = history[-1] if history else {}
-    print(f"run folder: {run_dir}; final validation: {json.dumps(last)}")
+    last = {"step": summary.step, **summary.validation} if summary.validation else {}
+    print(f"run folder: {summary.run}; final validation: {json.dumps(last)}")
     return 0

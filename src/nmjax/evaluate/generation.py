@@ -16,10 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, provenance, runs, tasks
+from nmjax import atomic, metrics, provenance, run_folder, runs, tasks
 from nmjax.evaluate.stats import summarize
 from nmjax.evaluate.tables import fmt
-from nmjax.runs import Detector
+from nmjax.train import dyn_inputs
+from nmjax.train.skel import Detector
 
 GEN_HORIZONS = (25, 100, 300)
 GEN_METHODS = ("Ours", "VRNN", "Hold last pose")
@@ -326,11 +327,11 @@ def crop_conditioning(
 
     Each clip (sequence, start in sampled frames) is its first crop, max(T, cond) frames,
     normalised with its own bounding box; its first `cond` frames go through the detector on
-    their own (`runs.detect_clips`).
+    their own (`dyn_inputs.detect_clips`).
     """
-    seqs, rate = runs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
+    seqs, rate = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
     located = [(seqs[name], start * rate) for name, start in clips]
-    return runs.detect_clips(detector, located, max(frames, cond), detect=cond)
+    return dyn_inputs.detect_clips(detector, located, max(frames, cond), detect=cond)
 
 
 def evaluate_generation_run(
@@ -351,21 +352,23 @@ def evaluate_generation_run(
     sequences (the layout of keypoints_test.npz) to cut the real clips from."""
     run = Path(run)
     stamp = provenance.stamp(GENERATION_METRICS)
-    if runs.run_kind(run) != "dyn":
+    if run_folder.run_kind(run) != "dyn":
         raise ValueError(
             f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
         )
     dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
-    skeleton = runs.pruned_skeleton(skel_run)
+    skeleton = run_folder.pruned_skeleton(skel_run)
     if skeleton is None:
         raise FileNotFoundError(
             f"{skel_run}/skeleton.json not found; run `nmjax extract-skeleton --run {skel_run}`"
         )
-    trajectories = runs.load_trajectories(skel_run, "test")
+    trajectories = run_folder.load_trajectories(skel_run, "test")
     conditioning = None
     if dyn_cfg.inputs == "crop":
         names, _ = conditioning_clips(trajectories, cond, clips)
-        x_cond = crop_conditioning(runs.phase2_detector(skel_run), names, cond, dyn_cfg.frames)
+        x_cond = crop_conditioning(
+            dyn_inputs.phase2_detector(skel_run), names, cond, dyn_cfg.frames
+        )
         conditioning = (names, x_cond)
     models = {"Ours": nnx.split(runs.restore_dynamics(run))}
     if vrnn_run is not None:
@@ -374,7 +377,7 @@ def evaluate_generation_run(
     settings["inputs"] = dyn_cfg.inputs
     real = None
     if real_keypoints is not None:
-        real = runs.read_trajectories(Path(real_keypoints))
+        real = run_folder.read_trajectories(Path(real_keypoints))
         settings["real_keypoints"] = str(real_keypoints)
     gen = evaluate_generation(
         models,

@@ -9,10 +9,10 @@ from typing import Any
 
 import numpy as np
 
-from nmjax import metrics, runs
+from nmjax import metrics, run_folder
 from nmjax.evaluate.stats import summarize
 from nmjax.evaluate.tables import SKELETON_TRUTH_COLUMNS
-from nmjax.runs import Detector
+from nmjax.train.skel import Detector
 
 # One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
 # One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
@@ -118,7 +118,7 @@ def skeleton_against_truth(
     Args:
       keypoints: per sequence, (C, T, K, 4) keypoints of its crops.
       joints: per sequence, (C, T, J, 3) ground-truth joints of the same crops.
-      skeleton: (pruned parents (K,), kept nodes (K,) bool), `runs.pruned_skeleton`.
+      skeleton: (pruned parents (K,), kept nodes (K,) bool), `run_folder.pruned_skeleton`.
       true_parents: (J,) the true tree, or None (edge precision and bone recall left out).
       names: the sequence names.
 
@@ -148,7 +148,7 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     (per-frame candidates with alpha >= 0.2), "sc_fixed_nodes" the fixed node set of the pruned
     skeleton. The bone-length variation (`metrics.bone_length_variation`) and the skeleton
     measures (`skeleton_against_truth`) take the pruned tree and kept nodes stored in the run's
-    skeleton.json (`runs.pruned_skeleton`): the bones between kept nodes over the same crops
+    skeleton.json (`run_folder.pruned_skeleton`): the bones between kept nodes over the same crops
     (each crop one sequence of T frames), absent when the run has no skeleton yet; the skeleton
     against the true tree of the dataset's meta.json (`true_tree`), absent without ground-truth
     joints or a skeleton.
@@ -163,7 +163,7 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     per_seq_sc: dict[str, dict[str, float]] = {"per_frame": {}, "fixed": {}}
     per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
     truth: dict[str, list] = {"names": [], "keypoints": [], "joints": []}
-    skeleton = runs.pruned_skeleton(detector.run)
+    skeleton = run_folder.pruned_skeleton(detector.run)
     for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
         per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])

@@ -12,13 +12,14 @@ import jax
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, provenance, runs
+from nmjax import atomic, metrics, provenance, run_folder, runs
 from nmjax.data.datasets import pad_with_last
 from nmjax.evaluate.phase1 import PHASE1_METRICS, evaluate_phase1
 from nmjax.evaluate.stats import summarize_per_rate
 from nmjax.evaluate.tables import markdown_tables
-from nmjax.runs import Detector
 from nmjax.tasks import Interpolators
+from nmjax.train import dyn_inputs
+from nmjax.train.skel import Detector
 
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
 METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
@@ -74,10 +75,10 @@ def keyframe_clips(
     data = detector.cfg.data
     length = max(frames, rate + 1)
     clips = [(seq, int(t) * data.sample_rate) for t in starts]
-    kp = runs.detect_clips(detector, clips, length)[:, : rate + 1]
+    kp = dyn_inputs.detect_clips(detector, clips, length)[:, : rate + 1]
     if not voxels:
         return kp, None
-    vox = np.stack([runs.clip_voxels(s, t, length, data)[: rate + 1] for s, t in clips])
+    vox = np.stack([dyn_inputs.clip_voxels(s, t, length, data)[: rate + 1] for s, t in clips])
     return kp, vox
 
 
@@ -181,7 +182,7 @@ def evaluate_run(
 ) -> dict:
     """Evaluates a phase-2 run (all tables) or a phase-1 run (Tables 1-2); writes the results."""
     run = Path(run)
-    dyn = runs.run_kind(run) == "dyn"
+    dyn = run_folder.run_kind(run) == "dyn"
     definitions = {**PHASE1_METRICS, **(INTERPOLATION_METRICS if dyn else {})}
     results: dict[str, Any] = {"provenance": provenance.stamp(definitions), "run": str(run)}
     if dyn:
@@ -197,7 +198,7 @@ def evaluate_run(
         vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
         traj = None
         if dyn_cfg.inputs == "sequence":
-            traj = runs.load_trajectories(skel_run, "test")
+            traj = run_folder.load_trajectories(skel_run, "test")
         interp = Interpolators(nm, vrnn, trajectories)
         results |= evaluate_interpolation(
             detector,

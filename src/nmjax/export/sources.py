@@ -49,7 +49,7 @@ def kind(folder: Path) -> str:
     Raises:
       FileNotFoundError: no such folder, or one that holds none of these.
     """
-    from nmjax import run_folder, runs, tasks
+    from nmjax import run_folder, tasks
 
     if not folder.is_dir():
         raise FileNotFoundError(
@@ -63,7 +63,7 @@ def kind(folder: Path) -> str:
     if (folder / INTERPOLATE_FILE).is_file():
         return "interpolate"
     if (folder / run_folder.CONFIG_FILE).is_file():
-        return runs.run_kind(folder)
+        return run_folder.run_kind(folder)
     raise FileNotFoundError(
         f"--run {folder} holds no {run_folder.CONFIG_FILE}, {tasks.RETARGET_FILE}, {GENERATE_FILE} "
         f"or {INTERPOLATE_FILE}; is it an unfinished run or output?"
@@ -108,13 +108,13 @@ def _listed(names: list[str]) -> str:
 
 
 def _sequences(folder: Path, found: str, split: str) -> list[str]:
-    from nmjax import run_folder, runs
+    from nmjax import run_folder
     from nmjax.config import DynTrainConfig
 
     skel_run = (
         folder if found == "skel" else run_folder.load_config(folder, DynTrainConfig).skel_run
     )
-    return list(runs.load_trajectories(skel_run, split))
+    return list(run_folder.load_trajectories(skel_run, split))
 
 
 def _pick(trajectories: dict[str, np.ndarray], options: Options, where: Path) -> np.ndarray:
@@ -239,13 +239,13 @@ def _retarget(folder: Path) -> tuple[Rig, int]:
 
 
 def _phase1(run: Path, options: Options) -> tuple[Rig, int]:
-    from nmjax import runs
+    from nmjax import run_folder
 
-    skeleton = runs.read_skeleton(run)
-    kept = runs.pruned_skeleton(run)
+    skeleton = run_folder.read_skeleton(run)
+    kept = run_folder.pruned_skeleton(run)
     keep = np.ones(skeleton.num_keypoints, bool) if kept is None else kept[1]
-    keypoints = _pick(runs.load_trajectories(run, options.split), options, run)
-    rate, up = runs.motion_format(run)
+    keypoints = _pick(run_folder.load_trajectories(run, options.split), options, run)
+    rate, up = run_folder.motion_format(run)
     rig = positions_rig(options.seq, keypoints, np.asarray(skeleton.parents), keep, rate)
     return rig, up
 
@@ -257,17 +257,17 @@ def _phase2(run: Path, options: Options) -> tuple[Rig, int]:
     import jax.numpy as jnp
     from flax import nnx
 
-    from nmjax import geometry, runs, tasks
+    from nmjax import geometry, run_folder, runs, tasks
     from nmjax.models.dynamics import bone_lengths
 
     model, _, skel_run = runs.load_phase2(run)
-    x = _pick(runs.load_trajectories(skel_run, options.split), options, skel_run)[None]
+    x = _pick(run_folder.load_trajectories(skel_run, options.split), options, skel_run)[None]
     local, recon = tasks.infer_rotations_jit(
         *nnx.split(model), jnp.asarray(x), jax.random.key(options.seed)
     )
-    kept = runs.pruned_skeleton(skel_run)
+    kept = run_folder.pruned_skeleton(skel_run)
     keep = np.ones(model.num_keypoints, bool) if kept is None else kept[1]
-    rate, up = runs.motion_format(skel_run)
+    rate, up = run_folder.motion_format(skel_run)
     parents = np.asarray(model.parents)
     if model.kind != "nm":  # the positional baseline outputs keypoints, no rotations
         return positions_rig(options.seq, np.asarray(recon[0]), parents, keep, rate), up

@@ -48,10 +48,10 @@ def keypoint_motion(detector: Any, cfg: Any, example: str | Path | None) -> tupl
     Raises:
       ValueError, FileNotFoundError: an unreadable example or dataset (`check_dataset` first).
     """
-    from nmjax import runs
+    from nmjax.train import skel
 
     data = cfg.data
-    det = runs.Detector.of(detector, cfg, "")
+    det = skel.Detector.of(detector, cfg, "")
     if example is not None:
         from nmjax.tasks import point_file_keypoints
 

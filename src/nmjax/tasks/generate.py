@@ -15,10 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, runs
+from nmjax import atomic, run_folder, runs
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics
 from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
+from nmjax.train import dyn_inputs, skel
 
 
 def generate_motion(
@@ -85,25 +86,25 @@ def generation_clips(
     """
     total = cond + gen
     if cfg.inputs == "sequence":
-        trajectories = runs.load_trajectories(skel_run, "test")
+        trajectories = run_folder.load_trajectories(skel_run, "test")
         names, observed = pick_inputs(trajectories, count, total)
         real = np.array([min(len(trajectories[n]), total) for n in names], np.int32)
         first = None
         if voxels:
-            detector = runs.Detector.load(skel_run)
-            seqs, data = runs.split_sequences(detector, "test"), detector.cfg.data
+            detector = skel.Detector.load(skel_run)
+            seqs, data = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data
             first = np.stack(
                 [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
             )
         return TaskClips(names, observed, real, first)
-    detector = runs.phase2_detector(skel_run)
-    seqs, data = runs.split_sequences(detector, "test"), detector.cfg.data
+    detector = dyn_inputs.phase2_detector(skel_run)
+    seqs, data = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data
     names = sorted(seqs)[:count]
     box = max(cfg.frames, cond)
     real = np.array([min(-(-seqs[n].num_frames // data.sample_rate), total) for n in names])
     observed, first = [], []
     for name, frames in zip(names, real, strict=True):
-        vox = runs.clip_voxels(seqs[name], 0, max(total, box), data, box_frames=box)[:total]
+        vox = dyn_inputs.clip_voxels(seqs[name], 0, max(total, box), data, box_frames=box)[:total]
         x_cond = detector.keypoints(vox[None, :cond])[0]
         rest = detector.keypoints(runs.sequence_windows(vox, cfg.frames))
         rest = rest.reshape(-1, *rest.shape[2:])[:total]
@@ -178,7 +179,7 @@ def run_generate(
         **rig_arrays(skel_run, len(model.parents)),
     )
     if voxels:
-        detector = runs.Detector.load(skel_run)
+        detector = skel.Detector.load(skel_run)
         decoded = [detector.decode(keypoints[:, s], clips.first_voxels) for s in range(samples)]
         atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):

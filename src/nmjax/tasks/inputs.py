@@ -17,8 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import runs
+from nmjax import run_folder
 from nmjax.data.datasets import pad_with_last
+from nmjax.train import skel
 
 
 def pick_inputs(
@@ -57,8 +58,8 @@ class TaskClips:
 def rig_arrays(skel_run: Path, num_keypoints: int) -> dict[str, np.ndarray]:
     """What `nmjax export` needs beside a task's motions: "frame_rate" and "up_axis" of the
     phase-1 run's sequences and "keep", the (K,) nodes its skeleton keeps."""
-    frame_rate, up_axis = runs.motion_format(skel_run)
-    kept = runs.pruned_skeleton(skel_run)
+    frame_rate, up_axis = run_folder.motion_format(skel_run)
+    kept = run_folder.pruned_skeleton(skel_run)
     return {
         "frame_rate": np.float64(frame_rate),
         "up_axis": np.int64(up_axis),
@@ -70,7 +71,7 @@ def rig_arrays(skel_run: Path, num_keypoints: int) -> dict[str, np.ndarray]:
 
 
 def point_file_keypoints(
-    detector: runs.Detector, path: str | os.PathLike, frames: int, sample_rate: int
+    detector: skel.Detector, path: str | os.PathLike, frames: int, sample_rate: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point-sequence file's motion as the release's demos take it: `frames` frames from the
     first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
@@ -106,7 +107,7 @@ def point_file_keypoints(
     one = dataclasses.replace(
         detector.cfg, data=dataclasses.replace(detector.cfg.data, batch_size=1)
     )
-    single = runs.Detector(detector.run, one, detector.graphdef, detector.state)
+    single = skel.Detector(detector.run, one, detector.graphdef, detector.state)
     return single.keypoints(voxels[None])[0], voxels
 
 
@@ -115,7 +116,7 @@ def source_file_clip(
 ) -> tuple[str, np.ndarray, np.ndarray]:
     """(name, keypoints (1, F, K, 4), first voxel frame (1, G, G, G)) of `point_file_keypoints`
     with the phase-1 run's detector; `sample_rate` None takes the run's."""
-    detector = runs.Detector.load(skel_run)
+    detector = skel.Detector.load(skel_run)
     rate = detector.cfg.data.sample_rate if sample_rate is None else sample_rate
     keypoints, voxels = point_file_keypoints(detector, path, frames, rate)
     return Path(path).stem, keypoints[None].astype(np.float32), voxels[None, 0]

@@ -21,10 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, runs
+from nmjax import atomic, geometry, run_folder, runs
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
+from nmjax.train import dyn_inputs
 
 
 def interpolate_motion(
@@ -178,15 +179,15 @@ def interpolation_clips(cfg: DynTrainConfig, skel_run: Path, count: int, gap: in
     gap + 1 frames kept), as the release's interpolation takes its keyframes.
     """
     if cfg.inputs == "sequence":
-        trajectories = runs.load_trajectories(skel_run, "test")
+        trajectories = run_folder.load_trajectories(skel_run, "test")
         names, truth = pick_inputs(trajectories, count, gap + 1)
         real = np.array([min(len(trajectories[n]), gap + 1) for n in names], np.int32)
         return TaskClips(names, truth, real)
-    detector = runs.phase2_detector(skel_run)
-    seqs, rate = runs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
+    detector = dyn_inputs.phase2_detector(skel_run)
+    seqs, rate = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
     names = sorted(seqs)[:count]
     clips = [(seqs[n], 0) for n in names]
-    truth = runs.detect_clips(detector, clips, max(cfg.frames, gap + 1))[:, : gap + 1]
+    truth = dyn_inputs.detect_clips(detector, clips, max(cfg.frames, gap + 1))[:, : gap + 1]
     real = [min(-(-seqs[n].num_frames // rate), gap + 1) for n in names]
     return TaskClips(names, truth, np.array(real, np.int32))
 

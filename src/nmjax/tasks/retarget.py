@@ -15,9 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, runs
+from nmjax import atomic, geometry, run_folder, runs
 from nmjax.models.dynamics import Dynamics
 from nmjax.tasks.inputs import pick_inputs, rig_arrays, source_file_clip
+from nmjax.train import skel
 
 
 def infer_rotations(
@@ -227,7 +228,7 @@ def retarget_pose(
     return rest, joints, rotations
 
 
-def detect_target_joints(detector: runs.Detector, points: np.ndarray) -> np.ndarray:
+def detect_target_joints(detector: skel.Detector, points: np.ndarray) -> np.ndarray:
     """Keypoints (K, 4) of one normalised point cloud, the frame repeated over a T-frame crop."""
     from nmjax.data.voxelize import voxelize
 
@@ -294,11 +295,11 @@ def run_retarget(
             raise ValueError("give either --source NAME or --source-file PATH, not both")
         name, x_src, _ = source_file_clip(skel_run, source_file, frames, source_rate)
     else:
-        trajectories = runs.load_trajectories(skel_run, "test")
+        trajectories = run_folder.load_trajectories(skel_run, "test")
         names = None if source is None else [source]
         (name,), x_src = pick_inputs(trajectories, 1, frames, names)
-    skeleton = runs.read_skeleton(skel_run)
-    intensities = runs.skeleton_intensities(skel_run)
+    skeleton = run_folder.read_skeleton(skel_run)
+    intensities = run_folder.skeleton_intensities(skel_run)
 
     # Target pose in its own normalised frame: the box of the mesh's vertices, one frame.
     bmin, scale = normalization_box(np.asarray(mesh.vertices)[None])
@@ -306,7 +307,7 @@ def run_retarget(
     cloud = apply_box(
         sample_surface(mesh.vertices, mesh.faces, points, seed, str(target)), bmin, scale
     )
-    detector = runs.Detector.load(skel_run)
+    detector = skel.Detector.load(skel_run)
     target_kp = detect_target_joints(detector, cloud.astype(np.float32))
     vertices = apply_box(mesh.vertices, bmin, scale)
 

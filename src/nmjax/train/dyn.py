@@ -1,17 +1,9 @@
 """Phase 2: train the dynamics module (VRNN) on the keypoint trajectories of a phase-1 run.
 
-Inputs come from a phase-1 run folder (contract C10, read by `nmjax.runs`): `skeleton.json`
-(parents, root, order) and the frozen detector's keypoints, in one of two forms
-(`DynTrainConfig.inputs`, both a `Phase2Inputs`):
-
-- "crop" (the release's): every T-frame training crop normalised with its own bounding box and
-  run through the detector (`nmjax.runs.DetectedCrops`). The keypoints of a crop depend on
-  nothing but its start frame (the detector is frozen, phase 2 does not augment), so each crop
-  is detected when a batch first draws it and kept: the inputs the release's step computes, at
-  most one detector pass per start (never more than the crops drawn), and no wait before the
-  first step.
-- "sequence": crops cut from the whole-sequence trajectories of `keypoints_{train,test}.npz`
-  (`sequence_inputs`, a `CropTable`), the named fast route that needs no detector.
+`train_dynamics` is the entry. It reads a phase-1 run folder (contract C10, `nmjax.run_folder`):
+`skeleton.json` (parents, root, order) and the frozen detector's keypoints, by
+`DynTrainConfig.inputs` the detector on each crop ("crop", the release's) or the exported
+whole-sequence keypoints ("sequence"); `dyn_inputs` builds both (`dyn_inputs.Phase2Inputs`).
 
 The crops of step s are the starts drawn with the key fold_in(seed key, s) (`crop_draws`, a block
 of steps at a time on the host, so a lazily detected crop is known before its step runs), so a
@@ -31,7 +23,7 @@ import dataclasses
 import functools
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, NamedTuple, Protocol
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -40,71 +32,11 @@ import optax
 from flax import nnx
 
 from nmjax import losses, run_folder
-from nmjax.config import DYN_INPUTS, DynTrainConfig
-from nmjax.data.datasets import pad_with_last
+from nmjax.config import DYN_INPUTS, DynTrainConfig, resolve_epochs
 from nmjax.models.dynamics import Dynamics
-from nmjax.train import checkpoints, loop, optim, parallel
+from nmjax.train import checkpoints, dyn_inputs, loop, optim, parallel
 
-MAX_VAL_CROPS = 64
-
-
-# --- crops ------------------------------------------------------------------------------------
-
-
-def crop_table(trajectories: dict[str, np.ndarray], frames: int) -> tuple[np.ndarray, np.ndarray]:
-    """All sequences concatenated along time, and every start frame of a crop of `frames`.
-
-    Sequences shorter than `frames` are padded with their last frame (as in the phase-1 pipeline).
-
-    Returns:
-      poses (F, K, 4) float32 and starts (S,) int32; `poses[s:s + frames]` is a valid crop for
-      every s in `starts`.
-    """
-    pieces, starts, offset = [], [], 0
-    for name in sorted(trajectories):
-        x = pad_with_last(trajectories[name], frames)
-        pieces.append(x)
-        starts.append(offset + np.arange(len(x) - frames + 1))
-        offset += len(x)
-    return np.concatenate(pieces).astype(np.float32), np.concatenate(starts).astype(np.int32)
-
-
-class CropTable(NamedTuple):
-    """Training crops cut from a table of poses (the "sequence" route, `crop_table`).
-
-    Attributes:
-      poses: (F, K, 4); starts: (S,) int32, `poses[s:s + frames]` is a crop for every s.
-      frames: T.
-    """
-
-    poses: np.ndarray
-    starts: np.ndarray
-    frames: int
-
-    @property
-    def num_starts(self) -> int:
-        return len(self.starts)
-
-    @property
-    def num_keypoints(self) -> int:
-        return int(self.poses.shape[1])
-
-    def batch(self, chosen: np.ndarray) -> np.ndarray:
-        """(B, T, K, 4): the crops of the starts at indices `chosen` (B,)."""
-        return self.poses[self.starts[chosen][:, None] + np.arange(self.frames)]
-
-
-class TrainingCrops(Protocol):
-    """What the step's batches are cut from: `CropTable`, or the detector on each crop
-    (`nmjax.runs.DetectedCrops`)."""
-
-    @property
-    def num_starts(self) -> int: ...
-
-    @property
-    def num_keypoints(self) -> int: ...
-
-    def batch(self, chosen: np.ndarray) -> np.ndarray: ...
+# --- the crops each step draws -----------------------------------------------------------------
 
 
 # Steps whose draws `CropDraws` computes at once: one small program per block instead of a
@@ -162,47 +94,6 @@ class CropDraws:
                 )
             )
         return self._draws[step - self._first]
-
-
-def validation_crops(trajectories: dict[str, np.ndarray], frames: int) -> np.ndarray:
-    """Deterministic validation crops (V, T, K, 4): non-overlapping windows, at most 64."""
-    poses, starts = crop_table(trajectories, frames)
-    starts = starts[:: max(frames, 1)]
-    if len(starts) > MAX_VAL_CROPS:
-        starts = starts[np.linspace(0, len(starts) - 1, MAX_VAL_CROPS).astype(int)]
-    return poses[starts[:, None] + np.arange(frames)]
-
-
-class Phase2Inputs(NamedTuple):
-    """What phase 2 trains and validates on, whichever `DynTrainConfig.inputs` made it.
-
-    Attributes:
-      crops: the training crops (`TrainingCrops`); each step draws B of its starts uniformly.
-      val: (V, T, K, 4) validation crops.
-      val_cond: (V, T_cond, K, 4) the keypoints the validation generation conditions on
-        (T_cond = `condition_frames(T)`).
-    """
-
-    crops: TrainingCrops
-    val: np.ndarray
-    val_cond: np.ndarray
-
-
-def sequence_inputs(trajectories: dict[str, dict[str, np.ndarray]], frames: int) -> Phase2Inputs:
-    """The "sequence" route: crops cut from whole-sequence trajectories.
-
-    Args:
-      trajectories: {"train": ..., "test": ...}, each {sequence: (T_seq, K, 4)} as in
-        keypoints_<split>.npz.
-      frames: T.
-
-    Returns:
-      every start of `crop_table` on the training split; `validation_crops` of the test split,
-      conditioned on their own first T_cond frames.
-    """
-    poses, starts = crop_table(trajectories["train"], frames)
-    val = validation_crops(trajectories["test"], frames)
-    return Phase2Inputs(CropTable(poses, starts, frames), val, val[:, : condition_frames(frames)])
 
 
 # --- loss and step ----------------------------------------------------------------------------
@@ -331,7 +222,8 @@ def restore_model(
 ) -> Dynamics:
     """The model of checkpoint `step` (default: the latest) of the phase-2 run `run`, whose
     configuration is `cfg` and whose skeleton is (`parents`, `order`). `nmjax.runs.
-    restore_dynamics` is the run-folder API over it (it reads both from the folder)."""
+    restore_dynamics` is the run-folder API over it (it reads both from the folder); phase 2
+    keeps no best checkpoint (its loop ranks none), so the latest is its trained model."""
     graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
     with checkpoints.Checkpointer(
         run_folder.checkpoint_dir(run), keep=cfg.loop.keep_checkpoints
@@ -341,11 +233,6 @@ def restore_model(
 
 
 # --- validation -------------------------------------------------------------------------------
-
-
-def condition_frames(frames: int) -> int:
-    """T_cond used in validation generation: a quarter of the crop, at least one frame."""
-    return max(1, frames // 4)
 
 
 def evaluate(
@@ -408,38 +295,31 @@ def check_config(cfg: DynTrainConfig) -> None:
         )
 
 
-def check_inputs(inputs: Phase2Inputs, num_keypoints: int) -> None:
-    """Refuses inputs whose keypoint count differs from the skeleton's (`nmjax.runs` checks the
-    phase-1 run's files before a run folder is made; this guards other callers)."""
-    k = {inputs.crops.num_keypoints, inputs.val.shape[2], inputs.val_cond.shape[2]}
-    if k != {num_keypoints}:
-        raise ValueError(
-            f"the phase-2 inputs have K={sorted(k)} keypoints but the skeleton has "
-            f"{num_keypoints} joints; give inputs and skeleton of the same phase-1 run"
-        )
-
-
-def train(
+def train_dynamics(
     cfg: DynTrainConfig,
-    skeleton: tuple[tuple[int, ...], tuple[int, ...]],
-    inputs: Callable[[], Phase2Inputs],
     *,
     resume: bool = False,
+    overwrite: bool = False,
     progress: bool = True,
     step_hook: Callable[[int, Any], Any] | None = None,
-) -> tuple[Path, list[dict[str, float]]]:
-    """Trains `cfg` to `cfg.loop.steps` steps; returns the run folder and the validation records.
+) -> loop.TrainSummary:
+    """Phase 2's entry: trains the dynamics model on the phase-1 run `cfg.skel_run` (default: the
+    latest of `cfg.data`) into the run folder `cfg.run` until `cfg.loop.steps`.
+
+    The run folder is `cfg.run`, else a new one under the run root
+    (`run_folder.config_run_dir`); the epochs count the training sequences
+    (`config.resolve_epochs`), as `skel.train_skeleton` counts its own. The resolved phase-1
+    folder is stored in config.json, so later tasks rebuild the model from the run folder alone.
+    The skeleton and, by `cfg.inputs`, the detector or the exported keypoints are read and
+    checked (`dyn_inputs.phase2_inputs`) before the run folder is made; the inputs are built
+    once it is accepted.
 
     Args:
-      cfg: the configuration; `cfg.skel_run` names the phase-1 run the inputs come from (stored
-        in config.json, so later tasks rebuild the model from the run folder alone).
-      skeleton: (parents, order) of the phase-1 run (`nmjax.runs.read_skeleton`).
-      inputs: makes the `Phase2Inputs` (`sequence_inputs`, or `nmjax.runs.crop_inputs`, whose
-        crops are detected as batches draw them); called once the run folder is accepted, so a
-        refused run costs nothing.
-      resume: continue `cfg.run` from its latest checkpoint; its config.json may differ from
-        `cfg` only in `run_folder.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from` starts
-        from that run's weights (`initial_weights`) and a fresh optimizer.
+      cfg: the configuration.
+      resume: continue the run folder from its latest checkpoint; its config.json may differ
+        from `cfg` only in `run_folder.RESUMABLE_FIELDS`. Without it a run with `cfg.init_from`
+        starts from that run's weights (`initial_weights`) and a fresh optimizer.
+      overwrite: replace a run folder that holds files (refused without it or `resume`).
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step.
 
@@ -447,26 +327,21 @@ def train(
       NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
     """
     check_config(cfg)
-    if cfg.loop.epochs > 0 and not cfg.loop.steps_per_epoch:
-        raise ValueError(
-            "dyn.train: a schedule in epochs needs its steps resolved from the training set "
-            "first (config.resolve_epochs; nmjax.runs.train_dynamics does it)"
-        )
-    parents, order = skeleton
+    skel_run = run_folder.find_skel_run(cfg.data, cfg.skel_run)
+    tree = run_folder.read_skeleton(skel_run)
+    parents, order = tree.parents, tree.order
+    cfg = dataclasses.replace(cfg, skel_run=str(skel_run))
+    train_sequences, inputs = dyn_inputs.phase2_inputs(cfg, skel_run, tree.num_keypoints)
+    cfg = resolve_epochs(cfg, train_sequences, cfg.batch_size)
     mesh = parallel.data_mesh()
     parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
-    run_dir = (
-        Path(cfg.run)
-        if cfg.run is not None
-        else run_folder.default_run_dir("dyn", cfg.data, cfg.model.model)
-    )
+    run_dir = run_folder.config_run_dir(cfg.run, "dyn", cfg.data, cfg.model.model)
     graphdef, state = build(cfg, parents, order)
     if cfg.init_from and not resume:  # checked before the run folder is made
         initial = initial_weights(cfg, len(parents))
         state["model"] = checkpoints.checked_weights(initial, state["model"], cfg.init_from)
-    run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg)
+    run_dir = parallel.prepare_run_dir(run_dir, resume=resume, config=cfg, overwrite=overwrite)
     data = inputs()
-    check_inputs(data, len(parents))
 
     # Every host draws the same crops and holds the validation set: replicated global arrays.
     val_x, val_cond, base_key, val_key = parallel.replicate(
@@ -475,7 +350,6 @@ def train(
     draws = CropDraws(jax.random.key(cfg.seed), data.crops.num_starts, cfg.batch_size)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
-    history: list[dict[str, float]] = []
 
     def train_step(state: Any, step: int) -> tuple[Any, dict[str, jax.Array]]:
         x = parallel.global_array(data.crops.batch(draws.at(step)), mesh)
@@ -483,8 +357,6 @@ def train(
 
     def validate(step: int, state: Any) -> dict[str, float]:
         metrics, generated = eval_step(state, val_x, val_cond, val_key, graphdef=graphdef)
-        scalars = {f"val/{k}": float(v) for k, v in metrics.items()}
-        history.append({"step": step, **scalars})
         if parallel.is_primary():
             from nmjax import viz  # only the validating process draws
 
@@ -495,9 +367,9 @@ def train(
                 parents,
                 val_cond.shape[1],
             )
-        return scalars
+        return {f"val/{k}": float(v) for k, v in metrics.items()}
 
-    loop.train_loop(
+    end = loop.train_loop(
         state,
         run_dir,
         resume=resume,
@@ -509,4 +381,4 @@ def train(
         step_hook=step_hook,
         postfix=getattr(data.crops, "postfix", None),
     )
-    return run_dir, history
+    return loop.TrainSummary.of(run_dir, end, cfg.loop)

@@ -9,6 +9,7 @@ to `Checkpointer` unchanged and logs what the step returns.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Mapping
@@ -58,6 +59,32 @@ class LoopEnd(NamedTuple):
     step: int  # steps taken when the loop stopped
     state: Any  # the training state then
     validation: dict[str, float]  # the last validation scalars
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSummary:
+    """What each phase's entry returns (`skel.train_skeleton`, `dyn.train_dynamics`).
+
+    Attributes:
+      run: the run folder.
+      start_step: steps taken before this invocation (a resumed run's checkpoint step, else 0).
+      step: steps taken when training stopped.
+      stop_reason: "steps" (`loop.steps` reached) or "time_limit" (`loop.time_limit_minutes`
+        passed first); a non-finite loss raises `NonFiniteLossError` instead.
+      validation: the last validation scalars ("val/..."), empty when none ran (a resumed run
+        that was already at its end).
+    """
+
+    run: Path
+    start_step: int
+    step: int
+    stop_reason: str
+    validation: dict[str, float]
+
+    @classmethod
+    def of(cls, run: Path, end: LoopEnd, loop: LoopConfig) -> TrainSummary:
+        reason = "steps" if end.step >= loop.steps else "time_limit"
+        return cls(Path(run), end.start, end.step, reason, dict(end.validation))
 
 
 def train_loop(

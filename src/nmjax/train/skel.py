@@ -4,9 +4,11 @@ One module-level jit-compiled step (`train_step`) over the state {"model", "opt"
 settings static, the state donated), driven by `loop.train_loop`: periodic validation on the
 test split (loss terms, SC-score Eq. 21 when joints exist, a picture), orbax checkpoints (latest
 few + best validation loss, with the grain iterator position, so a resume continues exactly),
-metrics to JSONL and TensorBoard. At the end the run folder gets affinity.npy and
-keypoint_stats.npz; `nmjax.runs.finish_phase1` adds skeleton.json and keypoints_{train,test}.npz
-(contract C10, `nmjax.run_folder`).
+metrics to JSONL and TensorBoard; `train_skeleton` is the entry. At the end the run folder gets
+affinity.npy and keypoint_stats.npz of the best checkpoint; `nmjax.runs.finish_phase1` adds
+skeleton.json and keypoints_{train,test}.npz of the same detector (contract C10,
+`nmjax.run_folder`). `Detector` is a trained detector restored for inference, with its compiled
+detect / reconstruct / decode functions.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax import losses, metrics, run_folder
 from nmjax.config import LossWeights, SkelTrainConfig, resolve_epochs
+from nmjax.data.datasets import pad_with_last
 from nmjax.data.pipeline import Augmentation
 from nmjax.models.detector import KeypointDetector, check_detector_config
 from nmjax.train import checkpoints, loop, optim, parallel
@@ -110,7 +113,7 @@ def restore_detector(
 ) -> tuple[KeypointDetector, SkelTrainConfig]:
     """The trained detector of a phase-1 run and its configuration: checkpoint `step`, else the
     best by validation loss, else the latest (`model_of`: the weight average when the run keeps
-    one). `nmjax.runs.load_detector` is the run-folder API over it."""
+    one). `Detector.load` wraps it for inference."""
     run = Path(run)
     cfg = run_folder.load_config(run, SkelTrainConfig)
     # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
@@ -126,6 +129,85 @@ def restore_detector(
     finally:
         ckpt.close()
     return model_of(graphdef, state, cfg), cfg
+
+
+@dataclasses.dataclass
+class Detector:
+    """A restored phase-1 detector with compiled detect / reconstruct / decode functions.
+
+    The functions are module-level jits keyed by the (static) graphdef, so every Detector of one
+    configuration shares their compilations.
+    """
+
+    run: Path
+    cfg: SkelTrainConfig
+    graphdef: Any
+    state: Any
+
+    @classmethod
+    def load(cls, run: str | Path, step: int | None = None) -> Detector:
+        """The detector of checkpoint `step`, by default the run's best by validation loss
+        (`restore_detector`): the one the release keeps, whose affinity and keypoint statistics
+        the trainer writes (`write_artifacts`) and whose keypoints `nmjax.runs.finish_phase1`
+        exports, so the skeleton, the exported keypoints and every later reader agree."""
+        model, cfg = restore_detector(run, step)
+        return cls.of(model, cfg, run)
+
+    @classmethod
+    def of(cls, model: KeypointDetector, cfg: SkelTrainConfig, run: str | Path) -> Detector:
+        graphdef, state = nnx.split(model)
+        # A trained state may be replicated over several hosts; inference here is local.
+        return cls(Path(run), cfg, graphdef, parallel.to_local(state))
+
+    def _batches(self, voxels: np.ndarray, fn) -> list[Any]:
+        """`fn(graphdef, state, batch)` on `voxels` in batches of the training batch size, the
+        last padded with the last crop, so one compiled shape serves every call."""
+        b = self.cfg.data.batch_size
+        padded = pad_with_last(voxels, -(-len(voxels) // b) * b)
+        return [
+            jax.device_get(fn(self.graphdef, self.state, jnp.asarray(padded[i : i + b])))
+            for i in range(0, len(padded), b)
+        ]
+
+    def run_batches(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints (C, T, K, 4) and reconstructions (C, T, G, G, G) of crops (C, T, G, G, G)."""
+        outs = self._batches(voxels, _forward)
+        n = len(voxels)
+        return (
+            np.concatenate([kp for kp, _ in outs])[:n],
+            np.concatenate([recon for _, recon in outs])[:n],
+        )
+
+    def keypoints(self, voxels: np.ndarray) -> np.ndarray:
+        """Keypoints (C, T, K, 4) of crops (C, T, G, G, G), without the reconstruction."""
+        return np.concatenate(self._batches(voxels, detect_batch))[: len(voxels)]
+
+    def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
+        """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
+        return np.asarray(
+            _decode(self.graphdef, self.state, jnp.asarray(keypoints), jnp.asarray(first_voxels))
+        )
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def _forward(graphdef, state, voxels):
+    out = nnx.merge(graphdef, state)(voxels)
+    return out["keypoints"], out["recon"]
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def detect_batch(graphdef, state, voxels):
+    """Keypoints (B, T, K, 4) of crops (B, T, G, G, G): the detector's forward without the
+    decoder, compiled once per shape (what `Detector.keypoints` and `nmjax bench --phase detect`
+    run)."""
+    return nnx.merge(graphdef, state).detect(voxels)[1]
+
+
+@functools.partial(jax.jit, static_argnames="graphdef")
+def _decode(graphdef, state, keypoints, first_voxels):
+    model = nnx.merge(graphdef, state)
+    features = model.features(first_voxels)  # c_1 of frame ts: f_feat sees one frame
+    return model.decode(keypoints, features, first_voxels)
 
 
 def loss_fn(
@@ -262,30 +344,33 @@ def validate(
 # --- the training loop -------------------------------------------------------------------------
 
 
-def train(
+def train_skeleton(
     cfg: SkelTrainConfig,
-    run_dir: str | Path,
     *,
     resume: bool = False,
     overwrite: bool = False,
-    finalize: bool = True,
     progress: bool = True,
     step_hook: Callable[[int, Any], Any] | None = None,
-) -> dict[str, Any]:
-    """Trains phase 1 into `run_dir` until `cfg.loop.steps`; returns a summary dict.
+    finalize: bool = True,
+) -> loop.TrainSummary:
+    """Phase 1's entry: trains the detector into the run folder `cfg.run` until `cfg.loop.steps`.
+
+    The run folder is `cfg.run`, else a new one under the run root
+    (`run_folder.config_run_dir`); the epochs count the training sequences
+    (`config.resolve_epochs`), as `dyn.train_dynamics` counts its own.
 
     Args:
       cfg: the full configuration (checked before anything is compiled or written).
-      run_dir: the run folder (contract C10).
-      resume: continue from the latest checkpoint of `run_dir` (state, step, data position); the
-        run's config.json may differ from `cfg` only in `run_folder.RESUMABLE_FIELDS`. Without it a
-        run with `cfg.init_from` starts from that run's weights (`initial_weights`) and a fresh
-        optimizer.
-      overwrite: replace an existing `run_dir`.
-      finalize: write affinity.npy and keypoint_stats.npz at the end (`write_artifacts`).
+      resume: continue from the latest checkpoint of the run folder (state, step, data
+        position); its config.json may differ from `cfg` only in `run_folder.RESUMABLE_FIELDS`.
+        Without it a run with `cfg.init_from` starts from that run's weights
+        (`initial_weights`) and a fresh optimizer.
+      overwrite: replace a run folder that holds files (refused without it or `resume`).
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step (step = steps
         done so far).
+      finalize: write affinity.npy and keypoint_stats.npz of the best checkpoint at the end
+        (`write_artifacts`); `nmjax.runs.finish_phase1` then adds the skeleton and keypoints.
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the message gives the step, and the last good
@@ -303,6 +388,7 @@ def train(
     parallel.check_batch_size(
         cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
     )
+    run_dir = run_folder.config_run_dir(cfg.run, "skel", cfg.data.name)
     # A synthetic set is generated on first use here, explicitly: the loaders never write.
     ensure_dataset(cfg.data.name, cfg.data.root)
     train_sequences = len(load_sequences(cfg.data.name, "train", cfg.data.root))
@@ -340,14 +426,21 @@ def train(
         step_hook=step_hook,
     )
     if finalize:
-        write_artifacts(run, graphdef, end.state, val_batches, cfg)
-    return {
-        "run": str(run),
-        "start_step": end.start,
-        "step": end.step,
-        "stopped_by_time_limit": end.step < cfg.loop.steps,
-        **end.validation,
-    }
+        write_artifacts(run, graphdef, best_state(run, end.state, cfg), val_batches, cfg)
+    return loop.TrainSummary.of(run, end, cfg.loop)
+
+
+def best_state(run: Path, state: Any, cfg: SkelTrainConfig) -> Any:
+    """The training state of the run's best checkpoint (lowest validation loss), placed as
+    `state` is (replicated over the mesh); `state` itself when no checkpoint holds a validation."""
+    with checkpoints.Checkpointer(
+        run_folder.checkpoint_dir(run), cfg.loop.keep_checkpoints, BEST_METRIC
+    ) as ckpt:
+        best = ckpt.best_step()
+        if best is None:
+            return state
+        _, restored = ckpt.restore(checkpoints.abstract_state(state), step=best)
+    return restored
 
 
 def _validation_figure(run, step, model, val_batches, val_kp) -> None:
@@ -371,7 +464,9 @@ def _validation_figure(run, step, model, val_batches, val_kp) -> None:
 def write_artifacts(
     run: Path, graphdef: Any, state: Any, val_batches, cfg: SkelTrainConfig
 ) -> None:
-    """affinity.npy and keypoint_stats.npz (the inputs of skeleton extraction).
+    """affinity.npy and keypoint_stats.npz (the inputs of skeleton extraction) of `state`, which
+    `train_skeleton` takes from the best checkpoint (`best_state`): the detector `Detector.load`
+    restores, so the skeleton and the exported keypoints come from one model.
 
     Every host takes part in the computations on the (global) state; only process 0 writes.
     """

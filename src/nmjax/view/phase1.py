@@ -32,8 +32,8 @@ class Phase1Data:
 
     Attributes:
       run: the run folder; split: the split whose sequences are shown.
-      keypoints: {sequence: (S, K, 4)} the exported keypoints (`runs.load_trajectories`).
-      parents: (K,) the pruned tree (`runs.pruned_skeleton`), keep: (K,) its kept nodes.
+      keypoints: {sequence: (S, K, 4)} the exported keypoints (`run_folder.load_trajectories`).
+      parents: (K,) the pruned tree (`run_folder.pruned_skeleton`), keep: (K,) its kept nodes.
       root: the root keypoint.
       influence: (K, K) max_n A_n of the learned affinity, None when the run has no affinity.npy.
       sequences: {name: `datasets.Sequence`}, None when the dataset cannot be read here.
@@ -63,7 +63,7 @@ class Phase1Data:
         Raises:
           ValueError: the keypoints were exported from a different number of frames.
         """
-        from nmjax import runs
+        from nmjax import run_folder, runs
 
         seq = None if self.sequences is None else self.sequences.get(name)
         if seq is None:
@@ -71,7 +71,7 @@ class Phase1Data:
         points, joints = runs.sequence_points(seq, self.sample_rate)
         if len(points) != len(self.keypoints[name]):
             raise ValueError(
-                f"{runs.keypoints_file(self.run, self.split)}[{name!r}] has "
+                f"{run_folder.keypoints_file(self.run, self.split)}[{name!r}] has "
                 f"{len(self.keypoints[name])} frames, the dataset's sequence {len(points)}; "
                 f"re-export with `nmjax export-keypoints --run {self.run}`"
             )
@@ -85,35 +85,35 @@ def read_phase1(run: str | Path, split: str = "test") -> Phase1Data:
       FileNotFoundError: no skeleton.json or keypoints_<split>.npz yet (names the command).
       ValueError: damaged run files.
     """
-    from nmjax import run_folder, runs
+    from nmjax import run_folder
     from nmjax.config import SkelTrainConfig
     from nmjax.data import datasets, layout
     from nmjax.skeleton import influence
 
     run = Path(run)
     cfg = run_folder.load_config(run, SkelTrainConfig)
-    keypoints = runs.load_trajectories(run, split)
-    skeleton = runs.read_skeleton(run)
-    parents, keep = runs.pruned_skeleton(run)
+    keypoints = run_folder.load_trajectories(run, split)
+    skeleton = run_folder.read_skeleton(run)
+    parents, keep = run_folder.pruned_skeleton(run)
     num = len(parents)
     for name, x in keypoints.items():
         if x.shape[1] != num:
             raise ValueError(
-                f"{runs.keypoints_file(run, split)}[{name!r}] has {x.shape[1]} keypoints, "
-                f"{run / runs.SKELETON_FILE} {num}; re-export with `nmjax export-keypoints "
+                f"{run_folder.keypoints_file(run, split)}[{name!r}] has {x.shape[1]} keypoints, "
+                f"{run / run_folder.SKELETON_FILE} {num}; re-export with `nmjax export-keypoints "
                 f"--run {run}`"
             )
     notes = []
     try:
-        affinity, _ = runs.read_skeleton_inputs(run)
+        affinity, _ = run_folder.read_skeleton_inputs(run)
         strength = influence(affinity)
     except FileNotFoundError as err:
         strength = None
         notes.append(f"no affinity layer ({' '.join(str(err).split())})")
     if strength is not None and strength.shape != (num, num):
         raise ValueError(
-            f"{run / runs.AFFINITY_FILE} is for K={len(strength)} keypoints, the skeleton has "
-            f"{num}; re-extract it with `nmjax extract-skeleton --run {run}`"
+            f"{run / run_folder.AFFINITY_FILE} is for K={len(strength)} keypoints, the skeleton "
+            f"has {num}; re-extract it with `nmjax extract-skeleton --run {run}`"
         )
     data = cfg.data
     try:

@@ -107,9 +107,9 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
         )
     _, skel_run, vrnn_run = runs.phase2_runs(run, None)
     model, _, _ = runs.load_phase2(run)
-    keypoints = runs.load_trajectories(skel_run, split)
-    skeleton = runs.read_skeleton(skel_run)
-    parents, keep = runs.pruned_skeleton(skel_run)
+    keypoints = run_folder.load_trajectories(skel_run, split)
+    skeleton = run_folder.read_skeleton(skel_run)
+    parents, keep = run_folder.pruned_skeleton(skel_run)
     vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
     return Phase2Data(
         run=run,

@@ -40,7 +40,7 @@ def folder_kind(folder: str | Path) -> str:
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
     """
-    from nmjax import run_folder, runs, tasks
+    from nmjax import run_folder, tasks
 
     folder = Path(folder)
     if folder.is_file() and folder.suffix.lower() in GLTF_SUFFIXES:
@@ -52,7 +52,7 @@ def folder_kind(folder: str | Path) -> str:
             "of `nmjax export`"
         )
     if (folder / run_folder.CONFIG_FILE).is_file():
-        return runs.run_kind(folder)
+        return run_folder.run_kind(folder)
     if (folder / tasks.RETARGET_FILE).is_file():
         return "retarget"
     raise FileNotFoundError(
@@ -142,7 +142,7 @@ def open_view(
       FileNotFoundError, ValueError, OSError: a missing or unfinished folder, an unknown
         sequence, a port in use; one line each.
     """
-    from nmjax import runs, tasks
+    from nmjax import run_folder, tasks
 
     import_viser()
     folder = Path(folder)
@@ -169,7 +169,7 @@ def open_view(
         if up_axis is not None:
             data = dataclasses.replace(data, up_axis=up_axis)
         source = data.run if kind == "skel" else data.skel_run
-        seq = pick_sequence(data.keypoints, seq, str(runs.keypoints_file(source, split)))
+        seq = pick_sequence(data.keypoints, seq, str(run_folder.keypoints_file(source, split)))
     server = start_server(host, port)
     try:
         if kind == "skel":

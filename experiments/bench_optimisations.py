@@ -34,7 +34,8 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax import provenance
 from nmjax.bench import environment, print_and_save
-from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
+from nmjax.config import PRESETS, skel_preset
+from nmjax.config_io import add_override_argument, apply_overrides
 from nmjax.models import blocks, conv_kernels, reference
 from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import VoxelDecoder

@@ -90,7 +90,8 @@ except ImportError:  # optional: the twin needs it, `--only jax` does not
     torch = F = nn = None
 
 from nmjax import bench, provenance
-from nmjax.config import PRESETS, SkelTrainConfig, apply_overrides, skel_preset
+from nmjax.config import PRESETS, SkelTrainConfig, skel_preset
+from nmjax.config_io import apply_overrides
 from nmjax.models.blocks import GN_EPS, LEAK, hourglass_levels, num_groups
 
 DATA = "synth-arm"

@@ -25,7 +25,8 @@ import phase2_tables
 
 from nmjax import atomic, provenance, run_folder, viz
 from nmjax.cli import main as nmjax_main
-from nmjax.config import DynTrainConfig, dyn_preset, replace_fields
+from nmjax.config import DynTrainConfig, dyn_preset
+from nmjax.config_io import replace_fields
 from nmjax.evaluate import (
     GEN_HORIZONS,
     GENERATION_METRICS,

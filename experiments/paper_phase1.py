@@ -48,7 +48,8 @@ import numpy as np
 import phase1_tables
 
 from nmjax import provenance, run_folder, runs
-from nmjax.config import SkelTrainConfig, config_from_dict, config_to_dict, skel_preset, with_steps
+from nmjax.config import SkelTrainConfig, skel_preset, with_steps
+from nmjax.config_io import config_from_dict, config_to_dict
 from nmjax.evaluate import (
     PHASE1_METRICS,
     evaluate_phase1,

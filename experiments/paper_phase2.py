@@ -42,13 +42,8 @@ import paper_phase1
 import phase2_tables
 
 from nmjax import provenance, run_folder
-from nmjax.config import (
-    DynTrainConfig,
-    config_from_dict,
-    config_to_dict,
-    dyn_preset,
-    replace_fields,
-)
+from nmjax.config import DynTrainConfig, dyn_preset
+from nmjax.config_io import config_from_dict, config_to_dict, replace_fields
 from nmjax.evaluate import (
     GEN_HORIZONS,
     GENERATION_METRICS,

@@ -40,7 +40,8 @@ import exp_common
 import numpy as np
 
 from nmjax import atomic, provenance, runs
-from nmjax.config import apply_overrides, replace_fields, skel_preset, with_steps
+from nmjax.config import skel_preset, with_steps
+from nmjax.config_io import apply_overrides, replace_fields
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1

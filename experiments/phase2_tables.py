@@ -29,7 +29,8 @@ import numpy as np
 import phase1_tables
 
 from nmjax import provenance, viz
-from nmjax.config import DynTrainConfig, config_from_dict
+from nmjax.config import DynTrainConfig
+from nmjax.config_io import config_from_dict
 from nmjax.evaluate import REFERENCE, fmt, generation_tables, interpolation_table
 
 BODIES = phase1_tables.BODIES

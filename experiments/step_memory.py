@@ -32,7 +32,8 @@ from flax import nnx
 
 from nmjax import provenance
 from nmjax.bench import environment
-from nmjax.config import PRESETS, add_override_argument, apply_overrides, skel_preset
+from nmjax.config import PRESETS, skel_preset
+from nmjax.config_io import add_override_argument, apply_overrides
 from nmjax.models import conv_kernels
 from nmjax.models.detector import KeypointDetector
 from nmjax.train import optim, parallel, skel

@@ -26,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import provenance, run_folder, viz
-from nmjax.config import DYN_INPUTS, config_to_dict, dyn_preset, replace_fields
+from nmjax.config import DYN_INPUTS, dyn_preset
+from nmjax.config_io import config_to_dict, replace_fields
 from nmjax.data import bodies, layout, synthetic
 from nmjax.data.normalize import normalize_sequence
 from nmjax.skeleton import skeleton_from_parents

@@ -18,7 +18,8 @@ from flax import nnx
 from tiny_runs import spread_convolutions
 
 from nmjax import losses
-from nmjax.config import apply_overrides, skel_preset
+from nmjax.config import skel_preset
+from nmjax.config_io import apply_overrides
 from nmjax.models.detector import KeypointDetector
 
 

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from flax import nnx
 
-from nmjax.config import config_from_dict, config_to_dict, skel_preset
+from nmjax.config import skel_preset
+from nmjax.config_io import config_from_dict, config_to_dict
 from nmjax.models import blocks
 from nmjax.models.conv_kernels import Evaluation
 from nmjax.models.detector import KeypointDetector, check_detector_config

@@ -14,7 +14,7 @@ import pytest
 from tiny_configs import fake_run_dyn_config, short_skel_config, small_skel_config
 
 from nmjax import config, run_folder, runs
-from nmjax.config import replace_fields
+from nmjax.config_io import replace_fields
 from nmjax.data.datasets import load_sequences
 from nmjax.train import checkpoints, dyn, loop, skel
 

@@ -108,6 +108,7 @@ def test_datasets_prepare_and_synthetic_depend_on_layout_not_on_each_other():
     assert imported_modules("nmjax.data.layout") <= {
         "nmjax.atomic",
         "nmjax.config",
+        "nmjax.config_io",
         "nmjax.parents",
     }
     assert imported_modules("nmjax.parents") == set()
@@ -187,7 +188,24 @@ def test_the_run_folder_sits_below_the_trainers():
     above += ("nmjax.release", "nmjax.cli", "nmjax.bench", "nmjax.models", "nmjax.export")
     imports = imported_modules("nmjax.run_folder")
     assert not {m for m in imports if m.startswith(above)}, sorted(imports)
-    assert imports <= {"nmjax.atomic", "nmjax.config", "nmjax.skeleton"}
+    assert imports <= {"nmjax.atomic", "nmjax.config", "nmjax.config_io", "nmjax.skeleton"}
     # The trainers' shared pieces read the run folder's names from it, never from a trainer.
     for name in ("nmjax.train.checkpoints", "nmjax.train.loop", "nmjax.train.metric_log"):
         assert not imported_modules(name) & {"nmjax.train.skel", "nmjax.train.dyn", "nmjax.runs"}
+
+
+def test_no_module_is_over_700_lines_except_the_kernel_collection():
+    # A file a newcomer can read in one sitting; the CPU convolution kernels are one collection
+    # of alternatives kept side by side on purpose (DESIGN section 2).
+    long = {
+        name: lines
+        for name, path in MODULES.items()
+        if (lines := len(path.read_text().splitlines())) > 700
+    }
+    assert set(long) <= {"nmjax.models.conv_kernels"}, long
+
+
+def test_config_io_reads_no_configuration_class():
+    # config.py builds its presets with config_io's functions; the reverse would be a cycle.
+    assert imported_modules("nmjax.config_io") == set()
+    assert "nmjax.config_io" in imported_modules("nmjax.config")

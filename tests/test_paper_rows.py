@@ -42,7 +42,7 @@ def _head() -> str | None:
 
 
 def test_a_phase1_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver):
-    from nmjax.config import config_to_dict
+    from nmjax.config_io import config_to_dict
 
     if _head() is None or not driver.descends_from(_head()):
         pytest.skip("needs this repository's git history (a clone with PHASE1_SINCE in it)")
@@ -259,7 +259,7 @@ def test_a_tiny_phase1_row_is_trained_scored_written_and_not_trained_again(
 
 
 def test_a_phase2_row_is_kept_only_when_made_by_code_that_computes_the_same_thing(driver2):
-    from nmjax.config import config_to_dict
+    from nmjax.config_io import config_to_dict
 
     head = _git("rev-parse", "HEAD")
     if head is None or not driver2.paper_phase1.descends_from(head, driver2.PHASE2_SINCE):

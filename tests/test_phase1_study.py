@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from experiment_scripts import load_experiment
 
-from nmjax.config import replace_fields
+from nmjax.config_io import replace_fields
 
 
 @pytest.fixture

@@ -17,7 +17,8 @@ import numpy as np
 from tiny_configs import small_arm_data, small_skel_config
 from tiny_runs import make_fake_run
 
-from nmjax.config import dyn_preset, replace_fields
+from nmjax.config import dyn_preset
+from nmjax.config_io import replace_fields
 from nmjax.train import dyn, metric_log, skel
 
 SKEL_LOSSES = [31.32627296447754, 35.00435256958008, 33.2287483215332, 37.119834899902344]

@@ -13,12 +13,12 @@ from nmjax.config import (
     CPU_LR_MILESTONES,
     CPU_STEPS,
     dyn_preset,
-    replace_fields,
     resolve_epochs,
     skel_preset,
     steps_per_epoch,
     with_steps,
 )
+from nmjax.config_io import replace_fields
 from nmjax.train import optim
 
 # The release's train.py / dataset/config.py: (epochs, decay epochs) per dataset; the synthetic

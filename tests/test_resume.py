@@ -22,7 +22,8 @@ from tiny_runs import poison_after
 
 from nmjax import atomic, run_folder, runs
 from nmjax.cli import main as nmjax_main
-from nmjax.config import replace_fields, resolve_epochs
+from nmjax.config import resolve_epochs
+from nmjax.config_io import replace_fields
 from nmjax.train import dyn, loop, metric_log, skel
 
 TORN = "3.orbax-checkpoint-tmp-1764633600"  # what orbax leaves of a save killed before its rename

@@ -9,16 +9,8 @@ import numpy as np
 import pytest
 
 from nmjax import run_folder
-from nmjax.config import (
-    DynTrainConfig,
-    SkelTrainConfig,
-    apply_overrides,
-    config_from_dict,
-    config_to_dict,
-    dyn_preset,
-    replace_fields,
-    skel_preset,
-)
+from nmjax.config import DynTrainConfig, SkelTrainConfig, dyn_preset, skel_preset
+from nmjax.config_io import apply_overrides, config_from_dict, config_to_dict, replace_fields
 from nmjax.skeleton import skeleton_from_parents
 
 

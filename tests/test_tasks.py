@@ -10,7 +10,8 @@ from flax import nnx
 from tiny_runs import PARENTS, make_runs
 
 from nmjax import geometry, tasks
-from nmjax.config import DynamicsConfig, replace_fields
+from nmjax.config import DynamicsConfig
+from nmjax.config_io import replace_fields
 from nmjax.data import meshes
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.skeleton import skeleton_from_parents, skin_weights

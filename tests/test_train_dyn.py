@@ -23,7 +23,8 @@ from tiny_runs import spread_convolutions
 from nmjax import atomic, run_folder, runs
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
-from nmjax.config import DynamicsConfig, dyn_preset, replace_fields
+from nmjax.config import DynamicsConfig, dyn_preset
+from nmjax.config_io import replace_fields
 from nmjax.data.datasets import Sequence
 from nmjax.data.normalize import normalize_sequence
 from nmjax.data.voxelize import voxelize

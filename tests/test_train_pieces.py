@@ -17,13 +17,8 @@ import pytest
 from flax import nnx
 
 from nmjax import run_folder
-from nmjax.config import (
-    DetectorConfig,
-    SkelTrainConfig,
-    config_from_dict,
-    config_to_dict,
-    replace_fields,
-)
+from nmjax.config import DetectorConfig, SkelTrainConfig
+from nmjax.config_io import config_from_dict, config_to_dict, replace_fields
 from nmjax.train import checkpoints, metric_log, optim
 
 

@@ -18,9 +18,10 @@ from flax import nnx
 from tiny_configs import short_skel_config as _cfg
 from tiny_runs import poison_after
 
-from nmjax import config, run_folder, runs
+from nmjax import config, config_io, run_folder, runs
 from nmjax.cli import main as nmjax_main
-from nmjax.config import replace_fields, skel_preset
+from nmjax.config import skel_preset
+from nmjax.config_io import replace_fields
 from nmjax.train import checkpoints, metric_log, parallel, skel
 
 
@@ -286,7 +287,7 @@ def test_unknown_data_lists_valid_names(capsys):
 
 
 def test_overrides_parse_types():
-    cfg = config.apply_overrides(
+    cfg = config_io.apply_overrides(
         skel_preset("synth-arm", "tiny"),
         [
             "model.channels=16",

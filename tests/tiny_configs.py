@@ -12,7 +12,8 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from nmjax.config import DynTrainConfig, SkelTrainConfig, dyn_preset, replace_fields, skel_preset
+from nmjax.config import DynTrainConfig, SkelTrainConfig, dyn_preset, skel_preset
+from nmjax.config_io import replace_fields
 
 
 def small_arm_data(root: Path) -> Path:

@@ -50,7 +50,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from nmjax.config import apply_overrides, dataset_spec, dyn_preset, skel_preset
+from nmjax.config import dataset_spec, dyn_preset, skel_preset
+from nmjax.config_io import apply_overrides
 
 # "detect": the frozen detector on phase-2 crops (forward only), beside the two train steps.
 PHASES = ("skel", "dyn", "detect")

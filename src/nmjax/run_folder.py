@@ -34,13 +34,8 @@ from typing import Any
 import numpy as np
 
 from nmjax import atomic
-from nmjax.config import (
-    SkelTrainConfig,
-    config_from_dict,
-    config_to_dict,
-    flatten_config,
-    frame_rate,
-)
+from nmjax.config import SkelTrainConfig, frame_rate
+from nmjax.config_io import config_from_dict, config_to_dict, flatten_config
 from nmjax.skeleton import Skeleton, load_skeleton, skeleton_from_parents
 
 # --- names --------------------------------------------------------------------------------------

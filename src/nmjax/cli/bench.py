@@ -11,7 +11,8 @@ from nmjax.cli import Parser
 
 def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     from nmjax.bench import PHASES
-    from nmjax.config import PRESETS, add_override_argument
+    from nmjax.config import PRESETS
+    from nmjax.config_io import add_override_argument
 
     parser = Parser(
         prog="nmjax bench",

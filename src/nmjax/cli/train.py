@@ -55,7 +55,8 @@ PHASES = {"skel": "phase-1", "dyn": "phase-2"}
 
 
 def _common_args(p: Parser, what: str, preset_help: str = "ignored with --resume") -> None:
-    from nmjax.config import PRESETS, add_override_argument
+    from nmjax.config import PRESETS
+    from nmjax.config_io import add_override_argument
 
     p.add_argument("--preset", default="default", choices=PRESETS, help=preset_help)
     p.add_argument(
@@ -117,13 +118,8 @@ def _initialize(args: argparse.Namespace) -> None:
 
 def skel_config(args: argparse.Namespace):
     """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import (
-        SkelTrainConfig,
-        apply_overrides,
-        replace_fields,
-        skel_preset,
-        with_steps,
-    )
+    from nmjax.config import SkelTrainConfig, skel_preset, with_steps
+    from nmjax.config_io import apply_overrides, replace_fields
     from nmjax.train import skel
 
     if args.resume:
@@ -235,7 +231,8 @@ def train_skel(argv: list[str]) -> int:
 
 def dyn_config(args: argparse.Namespace):
     """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import DynTrainConfig, apply_overrides, dyn_preset, replace_fields
+    from nmjax.config import DynTrainConfig, dyn_preset
+    from nmjax.config_io import apply_overrides, replace_fields
 
     if args.resume:
         cfg = _saved_config(args, DynTrainConfig)

@@ -51,13 +51,8 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
       ValueError: an option that selects a network nmjax does not implement, a missing option,
         or a dataset nmjax does not know.
     """
-    from nmjax.config import (
-        DynamicsConfig,
-        dataset_spec,
-        dyn_preset,
-        replace_fields,
-        skel_preset,
-    )
+    from nmjax.config import DynamicsConfig, dataset_spec, dyn_preset, skel_preset
+    from nmjax.config_io import replace_fields
 
     for name, value in SUPPORTED_OPTIONS.items():
         if _option(options, name) != value:

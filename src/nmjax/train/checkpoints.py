@@ -17,7 +17,7 @@ import orbax.checkpoint as ocp
 from orbax.checkpoint import checkpoint_managers as ocp_policies
 
 from nmjax import run_folder
-from nmjax.config import flatten_config
+from nmjax.config_io import flatten_config
 
 
 def abstract_state(state: Any) -> Any:

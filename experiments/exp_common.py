@@ -7,11 +7,16 @@ metric definitions), taken when the script starts.
 from __future__ import annotations
 
 import dataclasses
+import json
 import shlex
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+from nmjax import provenance, run_folder
 from nmjax.config import SkelTrainConfig
+from nmjax.config_io import config_to_dict
 from nmjax.data.datasets import load_sequences
 from nmjax.data.synthetic import ensure_dataset
 
@@ -36,3 +41,28 @@ def supervised_by_joints(cfg: SkelTrainConfig, data: str) -> SkelTrainConfig:
         model=dataclasses.replace(cfg.model, num_keypoints=int(seq.joints.shape[1])),
         weights=dataclasses.replace(cfg.weights, vol_target="joints"),
     )
+
+
+def finished(
+    run: Path, cfg: Any, comparable: Callable[[dict[str, Any]], dict[str, Any]]
+) -> dict[str, Any] | None:
+    """`run`'s config.json when the folder holds a finished run of `cfg` (the same configuration
+    as `comparable` reads both, a checkpoint at its last step), else None."""
+    try:
+        saved = json.loads((run / run_folder.CONFIG_FILE).read_text())
+    except (FileNotFoundError, json.JSONDecodeError):
+        return None
+    steps = run_folder.checkpoint_steps(run)
+    same = comparable(saved) == comparable(config_to_dict(cfg))
+    return saved if same and steps and steps[-1] >= cfg.loop.steps else None
+
+
+def refuse_dirty(script: str, allow_dirty: bool) -> None:
+    """Stops a row-making script (`paper_phase1.py`, `paper_phase2.py`) on a checkout with
+    uncommitted changes, whose rows no later run could keep, unless `allow_dirty`."""
+    if provenance.stamp().get("dirty") is not False and not allow_dirty:
+        raise SystemExit(
+            f"{script}: the checkout has uncommitted changes (or is not a git clone), so its "
+            "rows could not be kept by a later run; commit first, train from a clean worktree, "
+            "or pass --allow-dirty"
+        )

@@ -220,17 +220,8 @@ def plan(
 
 def complete(run: Path, cfg: SkelTrainConfig) -> bool:
     """Whether `run` holds a finished run of `cfg` with its skeleton."""
-    try:
-        saved = json.loads((run / run_folder.CONFIG_FILE).read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return False
-    steps = run_folder.checkpoint_steps(run)
-    return (
-        comparable(saved) == comparable(config_to_dict(cfg))
-        and bool(steps)
-        and steps[-1] >= cfg.loop.steps
-        and (run / run_folder.SKELETON_FILE).is_file()
-    )
+    finished = ec.finished(run, cfg, comparable)
+    return finished is not None and (run / run_folder.SKELETON_FILE).is_file()
 
 
 def train(key: RowKey, cfg: SkelTrainConfig) -> tuple[Path, float | None]:
@@ -375,12 +366,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     if args.dry_run or not todo:
         return
-    if provenance.stamp().get("dirty") is not False and not args.allow_dirty:
-        raise SystemExit(
-            "paper_phase1: the checkout has uncommitted changes (or is not a git clone), so its "
-            "rows could not be kept by a later run; commit first, train from a clean worktree, "
-            "or pass --allow-dirty"
-        )
+    ec.refuse_dirty("paper_phase1", args.allow_dirty)
     while todo:
         key, cfg = todo[0]
         stamp = provenance.stamp(METRICS)

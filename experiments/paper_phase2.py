@@ -153,18 +153,9 @@ def same_computation(
 
 
 def complete(run: Path, cfg: DynTrainConfig) -> bool:
-    """Whether `run` holds a finished run of `cfg`."""
-    try:
-        saved = json.loads((run / run_folder.CONFIG_FILE).read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
-        return False
-    steps = run_folder.checkpoint_steps(run)
-    return (
-        comparable(saved) == comparable(config_to_dict(cfg))
-        and saved.get("skel_run") == cfg.skel_run
-        and bool(steps)
-        and steps[-1] >= cfg.loop.steps
-    )
+    """Whether `run` holds a finished run of `cfg` on the same phase-1 run folder."""
+    finished = ec.finished(run, cfg, comparable)
+    return finished is not None and finished.get("skel_run") == cfg.skel_run
 
 
 def train(cfg: DynTrainConfig) -> tuple[Path, float | None]:
@@ -298,12 +289,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     if args.dry_run or not todo:
         return
-    if provenance.stamp().get("dirty") is not False and not args.allow_dirty:
-        raise SystemExit(
-            "paper_phase2: the checkout has uncommitted changes (or is not a git clone), so its "
-            "rows could not be kept by a later run; commit first, train from a clean worktree, "
-            "or pass --allow-dirty"
-        )
+    ec.refuse_dirty("paper_phase2", args.allow_dirty)
     for body, phase1, configs in todo:
         stamp = provenance.stamp(METRICS)
         # The phase-1 run again when its folder did not come with the rows (a new machine).

@@ -209,3 +209,59 @@ def test_config_io_reads_no_configuration_class():
     # config.py builds its presets with config_io's functions; the reverse would be a cycle.
     assert imported_modules("nmjax.config_io") == set()
     assert "nmjax.config_io" in imported_modules("nmjax.config")
+
+
+# DESIGN section 2's layers, lowest first: a module imports from its own layer or below, never
+# above (the command line -> the applications -> the tasks -> runs -> the trainers -> the run
+# folder -> models, data and pictures -> pure math and the base modules).
+LAYERS = (
+    (
+        "nmjax",
+        "nmjax.geometry",
+        "nmjax.keypoints",
+        "nmjax.losses",
+        "nmjax.metrics",
+        "nmjax.skeleton",
+        "nmjax.parents",
+        "nmjax.atomic",
+        "nmjax.config",
+        "nmjax.config_io",
+        "nmjax.provenance",
+    ),
+    ("nmjax.models", "nmjax.data", "nmjax.viz"),
+    ("nmjax.run_folder",),
+    ("nmjax.train",),
+    ("nmjax.runs",),
+    ("nmjax.tasks",),
+    ("nmjax.evaluate", "nmjax.view", "nmjax.release", "nmjax.export", "nmjax.bench"),
+    ("nmjax.cli",),
+)
+
+
+def layer_of(name: str) -> int:
+    """The index in LAYERS of module `name`: its own entry or its package's (longest wins)."""
+    found = [
+        (len(entry), i)
+        for i, entries in enumerate(LAYERS)
+        for entry in entries
+        if name == entry or (entry != "nmjax" and name.startswith(entry + "."))
+    ]
+    if not found:
+        raise KeyError(f"{name} is in no layer of LAYERS; place it")
+    return max(found)[1]
+
+
+def test_every_module_imports_only_from_its_layer_or_below():
+    upward = [
+        f"{name} (layer {layer_of(name)}) imports {other} (layer {layer_of(other)})"
+        for name in sorted(MODULES)
+        for other in sorted(imported_modules(name))
+        if layer_of(other) > layer_of(name)
+    ]
+    assert not upward, "\n".join(upward)
+
+
+def test_the_layer_rule_sees_an_upward_import():
+    assert layer_of("nmjax.train.loop") < layer_of("nmjax.runs") < layer_of("nmjax.cli.train")
+    assert layer_of("nmjax.metrics.sc") == layer_of("nmjax.geometry") == 0
+    assert layer_of("nmjax.run_folder") < layer_of("nmjax.train.skel")

@@ -131,8 +131,8 @@ def evaluate_interpolation(
         if trajectories is not None:
             if seq.name not in trajectories:
                 raise ValueError(
-                    f"sequence {seq.name!r} of the {split} split has no keypoints in the phase-1 "
-                    f"run's keypoints_{split}.npz; re-export them with "
+                    f"sequence {seq.name!r} of the {split} split has no keypoints in "
+                    f"{run_folder.keypoints_file(detector.run, split)}; re-export them with "
                     f"`nmjax export-keypoints --run {detector.run}`"
                 )
             vox = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid) if voxels else None

@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 import exp_common as ec
+import jax
 import numpy as np
 import paper_phase1
 import phase2_tables
@@ -172,6 +173,15 @@ def train(cfg: DynTrainConfig) -> tuple[Path, float | None]:
     return run, (time.perf_counter() - tic) / 60
 
 
+def release_compiled_programs() -> None:
+    """Drops JAX's compiled programs between the stages of a row. On CPU each one holds a few
+    memory mappings of machine code until released, and the training and scoring of several
+    bodies in one process compile enough of them to pass the kernel's limit on mappings per
+    process (vm.max_map_count, 65,530 by default), where XLA's next compilation fails ("Cannot
+    allocate memory") and the process dies: it happened on the third body of one run."""
+    jax.clear_caches()
+
+
 def model_record(run: Path, minutes: float | None) -> dict[str, Any]:
     """What a row keeps of one trained phase-2 run: its config as trained, the curves, the last
     validation and the training speed."""
@@ -205,6 +215,7 @@ def score(
         max_crops=1,  # the phase-1 tables are the phase-1 rows'; one crop keeps this cheap
         seed=SETTINGS["seed"],
     )
+    release_compiled_programs()
     gen = evaluate_generation_run(
         nm,
         vrnn_run=vrnn,
@@ -303,6 +314,7 @@ def main(argv: list[str] | None = None) -> None:
         for model, cfg in configs.items():
             print(f"--- {body} {model}: training into {cfg.run}", flush=True)
             trained[model] = train(cfg)
+            release_compiled_programs()
         print(f"--- {body}: scoring interpolation and generation", flush=True)
         row = score(body, phase1, trained, stamp)
         rows = [r for r in rows if r["body"] != body] + [row]

@@ -184,19 +184,6 @@ def write_rows(rows: list[dict[str, Any]], stamp: dict[str, Any], path: Path = R
     provenance.write_json(path, {"metrics": METRICS, "rows": rows}, stamp)
 
 
-def favours_alternative(rows: list[dict[str, Any]], body: str) -> bool | None:
-    """Whether fan_in at seed 0 lowers the joint distance and raises the distinct nodes against
-    the preset at seed 0 on `body` (None until both rows exist)."""
-    found = {r["variant"]: r["scores"] for r in rows if r["body"] == body and r["seed"] == 0}
-    if "preset" not in found or "fan_in" not in found:
-        return None
-    preset, alt = found["preset"], found["fan_in"]
-    return (
-        alt["joint_distance"] < preset["joint_distance"]
-        and alt["distinct_nodes"] > preset["distinct_nodes"]
-    )
-
-
 def plan(
     bodies: list[str], seeds: list[int], groups: list[str], rows: list[dict[str, Any]]
 ) -> list[RowKey]:
@@ -213,7 +200,7 @@ def plan(
         keys += [
             RowKey(b, 1, "fan_in")
             for b in bodies
-            if 1 in seeds and favours_alternative(rows, b) is not False
+            if 1 in seeds and phase1_tables.favours_alternative(rows, b) is not False
         ]
     return keys
 

@@ -322,6 +322,19 @@ def alg1_methods(rows, stamp, out: Path) -> None:
     )
 
 
+def favours_alternative(rows: list[dict[str, Any]], body: str) -> bool | None:
+    """Whether fan_in at seed 0 lowers the joint distance and raises the distinct nodes against
+    the preset at seed 0 on `body` (None until both rows exist)."""
+    found = {r["variant"]: r["scores"] for r in rows if r["body"] == body and r["seed"] == 0}
+    if "preset" not in found or "fan_in" not in found:
+        return None
+    preset, alt = found["preset"], found["fan_in"]
+    return (
+        alt["joint_distance"] < preset["joint_distance"]
+        and alt["distinct_nodes"] > preset["distinct_nodes"]
+    )
+
+
 def adoption(rows, seeds: list[int]) -> tuple[bool | None, list[str]]:
     """Whether the preset adopts fan_in: on at least three of the four bodies, at every seed, a
     lower joint distance, more distinct nodes and no higher CD than the preset. None while the
@@ -436,8 +449,12 @@ def sheet(
             row = _one(rows, body, seed, variant)
             if row is None:
                 ax.set_axis_off()
-                planned = variant not in COMPARISONS or body in COMPARISON_BODIES
-                why = "not made yet" if planned else "not planned (comparisons: human, hand)"
+                if variant in COMPARISONS and body not in COMPARISON_BODIES:
+                    why = "not planned (comparisons: human, hand)"
+                elif variant == "fan_in" and seed == 1 and favours_alternative(rows, body) is False:
+                    why = "not planned (seed 0 does not favour it)"
+                else:
+                    why = "not made yet"
                 ax.set_title(f"{body} s{seed} {variant}\n{why}", fontsize=7)
             else:
                 draw_row(ax, row, row_title(row))

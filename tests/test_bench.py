@@ -73,7 +73,7 @@ def test_bench_main_writes_rows_for_both_phases_and_the_detector(arm_root, tmp_p
         assert all(mem[k] >= 0 for k in bench.MEMORY_KEYS) and mem["argument_bytes"] > 0
         assert mem.get("peak_bytes_in_use", mem.get("peak_rss_bytes", 0)) > 0
     assert (skel_row["phase"], skel_row["compute_dtype"], skel_row["B"]) == ("skel", "bfloat16", 2)
-    assert skel_row["conv_form"] == "auto"  # model.conv_form, recorded with the timing
+    assert skel_row["conv_form"] == "stacked"  # the tiny preset's model.conv_form, recorded with it
     assert skel_row["load_s_per_step"] > 0
     assert (dyn_row["phase"], dyn_row["B"]) == ("dyn", 2)
     assert dyn_row["load_s_per_step"] > 0  # the batch cut on the host

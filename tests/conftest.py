@@ -16,9 +16,16 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 # The tests' programs are tiny, so compiling them is nearly all of the suite's time, and most of
 # that is LLVM optimising machine code that then runs a few steps: with LLVM's optimisations off
-# the tiny train step compiles in about half the time. The results are the same functions (XLA
-# enables no fast-math at any level); benchmarks and training runs keep XLA's defaults.
-_FAST_COMPILE = ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true")
+# the tiny train step compiles in about half the time. XLA's CPU fusion emitters (the MLIR ones)
+# take about half of what is left: with the older emitters the tests' G=8 phase-1 train step
+# compiles in 4.3 s against 8.4 s, and 6 steps of it give the same loss to 8 digits. The results
+# are the same functions (XLA enables no fast-math at any level); benchmarks and training runs
+# keep XLA's defaults.
+_FAST_COMPILE = (
+    "--xla_backend_optimization_level=0",
+    "--xla_llvm_disable_expensive_passes=true",
+    "--xla_cpu_use_fusion_emitters=false",
+)
 _flags = os.environ.get("XLA_FLAGS", "")
 if "xla_backend_optimization_level" not in _flags:
     os.environ["XLA_FLAGS"] = " ".join([_flags, *_FAST_COMPILE]).strip()

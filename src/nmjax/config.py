@@ -420,9 +420,10 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
                 channels=8,
                 hourglass_channels=(8, 8, 8),
                 # A tiny run is nearly all compilation, and Winograd's transforms compile slowest:
-                # the taps-stacked CPU form ("auto"'s below WINOGRAD_MIN_SIDE) trains the tiny
-                # preset's 20 steps in 27 s against 30 s, and the tests' G=8 step in 15 s against
-                # 20 s (2 cores, compilation included). Winograd's own tests name it.
+                # with the taps-stacked CPU form ("auto"'s below WINOGRAD_MIN_SIDE) the tiny
+                # preset's 20 steps on synth-arm take 14.6-15.0 s against 18.4-19.6 s, compilation
+                # included, under the test suite's XLA flags (tests/conftest.py). Winograd's own
+                # tests name it.
                 conv_form="stacked",
             ),
             optim=dataclasses.replace(cfg.optim, lr_milestones=(10, 15)),

@@ -17,7 +17,7 @@ import pytest
 from flax import nnx
 
 from nmjax import run_folder
-from nmjax.config import DetectorConfig, SkelTrainConfig
+from nmjax.config import DetectorConfig, LoopConfig, SkelTrainConfig
 from nmjax.config_io import config_from_dict, config_to_dict, replace_fields
 from nmjax.train import checkpoints, metric_log, optim
 
@@ -150,6 +150,21 @@ def test_checkpointer_keeps_latest_and_best_and_restores_iterator(tmp_path):
     reference = iter(dataset)
     expected = [next(reference) for _ in range(3)][-1]
     assert next(fresh) == expected
+
+
+def test_checkpointer_keeps_every_nth_step_for_good(tmp_path):
+    """keep_every keeps the multiples of it beside the latest; a reopened manager with the
+    loop's policy (`of_run`) deletes none of them when it saves again."""
+    loop = LoopConfig(keep_checkpoints=1, keep_every=2)
+    with checkpoints.Checkpointer.of_run(tmp_path, loop) as ckpt:
+        for step in range(1, 6):
+            ckpt.save(step, _state(4, seed=step))
+        assert ckpt.all_steps() == [2, 4, 5]
+    with checkpoints.Checkpointer.of_run(tmp_path, loop) as ckpt:
+        ckpt.save(7, _state(4))
+        assert ckpt.all_steps() == [2, 4, 7]
+    with pytest.raises(ValueError, match="keep_every"):
+        checkpoints.Checkpointer(tmp_path / "other", keep=1, keep_every=-1)
 
 
 _RESTORE_SCRIPT = """

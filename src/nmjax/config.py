@@ -239,6 +239,9 @@ class LoopConfig:
     val_every: int = 500
     ckpt_every: int = 500
     keep_checkpoints: int = 3
+    # > 0: every checkpoint at a multiple of this many steps is kept as well (a multiple of
+    # ckpt_every to mean anything); 0: only the last keep_checkpoints and the best.
+    keep_every: int = 0
     # Wall-clock limit of one invocation of the trainer, in minutes (0: none). Reached, the run
     # stops after the current step as if it were the last one (validation, checkpoint,
     # artefacts); fixed-budget comparisons (experiments/phase1_study.py) use it.

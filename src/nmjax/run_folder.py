@@ -121,6 +121,7 @@ RESUMABLE_FIELDS = frozenset(
         "loop.log_every",
         "loop.val_every",
         "loop.ckpt_every",
+        "loop.keep_every",
         "loop.time_limit_minutes",
         "run",
         "data.root",

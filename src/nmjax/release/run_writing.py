@@ -16,7 +16,5 @@ def save_run(folder: Path, cfg: Any, model: Any, optimizer: Any) -> None:
 
     run_folder.prepare_run_dir(folder, resume=False, config=cfg)
     _, state = optim.init_state(model, optimizer)
-    with checkpoints.Checkpointer(
-        run_folder.checkpoint_dir(folder), cfg.loop.keep_checkpoints
-    ) as ckpt:
+    with checkpoints.Checkpointer.of_run(folder, cfg.loop) as ckpt:
         ckpt.save(0, state)

@@ -82,7 +82,9 @@ def checked_weights(weights: Any, expected: Any, source: str) -> Any:
 
 
 class Checkpointer:
-    """One `ocp.CheckpointManager`: the last `keep` checkpoints plus the best by `best_metric`.
+    """One `ocp.CheckpointManager`: the last `keep` checkpoints plus the best by `best_metric`,
+    plus every checkpoint whose step is a multiple of `keep_every` (0: none), which the retention
+    policy never deletes (a run scored along its training, `experiments/phase1_budget.py`).
 
     Each checkpoint holds the item `state` (a pytree, normally `nnx.state((model, optimizer))`)
     and, when given, the item `data` (the grain iterator's position). Saves are synchronous so a
@@ -90,12 +92,22 @@ class Checkpointer:
     Existing checkpoints are never overwritten or deleted except by the retention policy.
     """
 
-    def __init__(self, directory: str | Path, keep: int = 3, best_metric: str | None = None):
+    def __init__(
+        self,
+        directory: str | Path,
+        keep: int = 3,
+        best_metric: str | None = None,
+        keep_every: int = 0,
+    ):
         if keep < 1:
             raise ValueError(f"keep_checkpoints must be >= 1, got {keep}")
+        if keep_every < 0:
+            raise ValueError(f"keep_every must be >= 0 (0: none), got {keep_every}")
         self.directory = Path(directory).absolute()
         self.best_metric = best_metric
         policies: list[Any] = [ocp_policies.LatestN(n=keep)]
+        if keep_every:
+            policies.append(ocp_policies.EveryNSteps(interval_steps=keep_every))
         best_fn = None
         if best_metric is not None:
 
@@ -127,6 +139,13 @@ class Checkpointer:
                 "state": ocp.StandardCheckpointHandler(),
                 "data": grain.checkpoint.CheckpointHandler(),
             },
+        )
+
+    @classmethod
+    def of_run(cls, run: str | Path, loop: Any, best_metric: str | None = None) -> Checkpointer:
+        """The checkpoints of run folder `run`, kept as its `LoopConfig` `loop` says."""
+        return cls(
+            run_folder.checkpoint_dir(run), loop.keep_checkpoints, best_metric, loop.keep_every
         )
 
     def latest_step(self) -> int | None:

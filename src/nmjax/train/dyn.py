@@ -225,9 +225,7 @@ def restore_model(
     restore_dynamics` is the run-folder API over it (it reads both from the folder); phase 2
     keeps no best checkpoint (its loop ranks none), so the latest is its trained model."""
     graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
-    with checkpoints.Checkpointer(
-        run_folder.checkpoint_dir(run), keep=cfg.loop.keep_checkpoints
-    ) as ckpt:
+    with checkpoints.Checkpointer.of_run(run, cfg.loop) as ckpt:
         _, state = ckpt.restore(abstract, step=step)
     return nnx.merge(graphdef, state["model"])
 

@@ -19,7 +19,6 @@ from typing import Any, NamedTuple
 import grain
 import jax
 
-from nmjax import run_folder
 from nmjax.config import LoopConfig
 from nmjax.train.checkpoints import Checkpointer, abstract_state
 from nmjax.train.metric_log import metric_writer
@@ -140,7 +139,7 @@ def train_loop(
       NonFiniteLossError: the loss became NaN/inf; the message gives the first such step, and the
         last good checkpoint stays on disk.
     """
-    checkpointer = Checkpointer(run_folder.checkpoint_dir(run), loop.keep_checkpoints, best_metric)
+    checkpointer = Checkpointer.of_run(run, loop, best_metric)
     try:
         start = 0
         if resume:

@@ -119,9 +119,7 @@ def restore_detector(
     # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
     graphdef, state = build(cfg)
     abstract = checkpoints.abstract_state(state)
-    ckpt = checkpoints.Checkpointer(
-        run_folder.checkpoint_dir(run), cfg.loop.keep_checkpoints, BEST_METRIC
-    )
+    ckpt = checkpoints.Checkpointer.of_run(run, cfg.loop, BEST_METRIC)
     try:
         if step is None:
             step = ckpt.best_step() or ckpt.latest_step()
@@ -433,9 +431,7 @@ def train_skeleton(
 def best_state(run: Path, state: Any, cfg: SkelTrainConfig) -> Any:
     """The training state of the run's best checkpoint (lowest validation loss), placed as
     `state` is (replicated over the mesh); `state` itself when no checkpoint holds a validation."""
-    with checkpoints.Checkpointer(
-        run_folder.checkpoint_dir(run), cfg.loop.keep_checkpoints, BEST_METRIC
-    ) as ckpt:
+    with checkpoints.Checkpointer.of_run(run, cfg.loop, BEST_METRIC) as ckpt:
         best = ckpt.best_step()
         if best is None:
             return state

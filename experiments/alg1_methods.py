@@ -32,7 +32,7 @@ from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
 from nmjax.run_folder import AFFINITY_FILE, STATS_FILE
 from nmjax.skeleton import METHODS, extract_skeleton, prune
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
 RESULTS = Path(__file__).parent / "results"
 METRICS = {

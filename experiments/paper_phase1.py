@@ -47,7 +47,7 @@ import exp_common as ec
 import numpy as np
 import phase1_tables
 
-from nmjax import provenance, run_folder, runs
+from nmjax import provenance, run_folder
 from nmjax.config import SkelTrainConfig, skel_preset, with_steps
 from nmjax.config_io import config_from_dict, config_to_dict
 from nmjax.evaluate import (
@@ -61,7 +61,7 @@ from nmjax.evaluate import (
 from nmjax.metrics import voxel_points
 from nmjax.skeleton import extract_skeleton, prune
 from nmjax.train import skel
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
 BODIES, COMPARISON_BODIES = phase1_tables.BODIES, phase1_tables.COMPARISON_BODIES
 VARIANTS = {
@@ -224,7 +224,6 @@ def train(key: RowKey, cfg: SkelTrainConfig) -> tuple[Path, float | None]:
     has_checkpoint = resumable and bool(run_folder.checkpoint_steps(run))
     cfg = dataclasses.replace(cfg, run=str(run))
     skel.train_skeleton(cfg, resume=has_checkpoint, overwrite=not has_checkpoint, progress=True)
-    runs.finish_phase1(run)
     return run, (time.perf_counter() - tic) / 60
 
 

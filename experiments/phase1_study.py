@@ -39,13 +39,13 @@ from pathlib import Path
 import exp_common
 import numpy as np
 
-from nmjax import atomic, provenance, runs
+from nmjax import atomic, provenance
 from nmjax.config import skel_preset, with_steps
 from nmjax.config_io import apply_overrides, replace_fields
 from nmjax.data import synthetic
 from nmjax.data.layout import dataset_root
 from nmjax.evaluate import PHASE1_METRICS, SKELETON_TRUTH_COLUMNS, evaluate_phase1
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
 RESULTS = Path(__file__).parent / "results"
 RUNS = Path("runs") / "study"
@@ -252,12 +252,9 @@ def run_variant(
     budget = f"{steps} steps" if steps is not None else f"{minutes:g} min"
     run = RUNS / f"{data}-{name}-s{seed}-{budget.replace(' ', '')}"
     begin = time.perf_counter()
-    # The base rows also feed phase 2 (experiments/generation_table.py): only they export the
-    # keypoints of every sequence.
     summary = skel.train_skeleton(
         replace_fields(cfg, run=str(run)), overwrite=True, progress=sys.stderr.isatty()
     )
-    runs.finish_phase1(run, export=name == "base")
     wall = (time.perf_counter() - begin) / 60
     detector = standard_test_detector(run, data)
     results = evaluate_phase1(detector, max_crops)

@@ -26,7 +26,7 @@ import numpy as np
 from nmjax import metrics, provenance
 from nmjax.data.layout import read_meta
 from nmjax.evaluate import phase1_outputs
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
 NOISE_STDS = (0.0, 0.02, 0.04, 0.06, 0.08)
 METRICS = {

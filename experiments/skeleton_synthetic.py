@@ -27,8 +27,8 @@ from nmjax.data.normalize import normalize_sequence
 from nmjax.data.synthetic import generate
 from nmjax.data.voxelize import voxelize
 from nmjax.run_folder import AFFINITY_FILE, FIGURES_DIR, STATS_FILE
-from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import extract_skeleton
+from nmjax.train.trained import extract_run_skeleton
 
 
 def motion_affinity(joints: np.ndarray, tau: float = 0.05) -> np.ndarray:

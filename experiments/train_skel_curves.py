@@ -22,7 +22,7 @@ from nmjax import provenance
 from nmjax.evaluate import PHASE1_METRICS, evaluate_phase1, phase1_scores
 from nmjax.losses import TERMS
 from nmjax.train import metric_log
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 from nmjax.viz import save_figure  # importing nmjax.viz selects the Agg backend
 
 RESULTS = Path(__file__).parent / "results"

@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 from tiny_configs import fake_run_dyn_config, short_skel_config, small_skel_config
 
-from nmjax import config, run_folder, runs
+from nmjax import config, run_folder
 from nmjax.config_io import replace_fields
 from nmjax.data.datasets import load_sequences
-from nmjax.train import checkpoints, dyn, loop, skel
+from nmjax.train import checkpoints, dyn, loop, skel, trained
 
 ENTRIES = (skel.train_skeleton, dyn.train_dynamics)
 
@@ -101,23 +101,22 @@ def test_exported_keypoints_and_the_skeleton_come_from_the_detector_every_reader
     run = tmp_path / "skel"
     cfg = short_skel_config(data_root, run=str(run), steps=3, val_every=1, lr_milestones=())
     skel.train_skeleton(cfg, progress=False)
-    runs.finish_phase1(run)
     with checkpoints.Checkpointer(
         run_folder.checkpoint_dir(run), cfg.loop.keep_checkpoints, skel.BEST_METRIC
     ) as ckpt:
         assert (ckpt.best_step(), ckpt.latest_step()) == (1, 3)
 
-    detector = skel.Detector.load(run)
+    detector = trained.Detector.load(run)
     (name, exported), *_ = run_folder.load_trajectories(run, "test").items()
     (seq,) = (s for s in load_sequences(cfg.data.name, "test", cfg.data.root) if s.name == name)
-    voxels = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
-    windows = runs.sequence_windows(voxels, cfg.data.frames)
+    voxels = trained.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
+    windows = trained.sequence_windows(voxels, cfg.data.frames)
     for step, same in ((None, True), (3, False)):
-        model = detector if step is None else skel.Detector.load(run, step)
+        model = detector if step is None else trained.Detector.load(run, step)
         keypoints = model.keypoints(windows).reshape(-1, *exported.shape[1:])[: len(exported)]
         assert np.allclose(keypoints, exported, atol=1e-6) is same
         affinity = np.asarray(
-            skel.restore_detector(run, step)[0].affinity(), np.float32
+            trained.restore_detector(run, step)[0].affinity(), np.float32
         )  # the affinity skeleton.json was extracted from
         assert np.allclose(np.load(run / run_folder.AFFINITY_FILE), affinity, atol=1e-6) is same
     assert bool(jnp.all(jnp.isfinite(exported)))

@@ -332,7 +332,7 @@ def test_phase2_run_exports_its_reconstruction_of_a_sequence(runs, tmp_path):
     from flax import nnx
 
     from nmjax import run_folder
-    from nmjax import runs as run_folders
+    from nmjax.train import trained as run_folders
 
     name = sorted(run_folder.load_trajectories(runs["skel"], "test"))[0]
     out = tmp_path / "recon.glb"

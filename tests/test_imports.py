@@ -144,8 +144,8 @@ def test_data_imports_neither_metrics_nor_the_applications():
 
 
 def test_tasks_sit_below_evaluate_and_view_which_stay_apart():
-    # CLI -> view / evaluate -> tasks -> runs (DESIGN section 2): a task never reaches up, and
-    # the two applications over the tasks do not lean on each other.
+    # CLI -> view / evaluate -> tasks -> the trained models (docs/architecture.md): a task never
+    # reaches up, and the two applications over the tasks do not lean on each other.
     for low, high in (
         ("nmjax.tasks", "nmjax.evaluate"),
         ("nmjax.tasks", "nmjax.view"),
@@ -157,7 +157,7 @@ def test_tasks_sit_below_evaluate_and_view_which_stay_apart():
     ):
         reached = imports_from_outside(low) & package(high)
         assert not reached, f"{low} imports {sorted(reached)}"
-    assert "nmjax.runs" in imports_from_outside("nmjax.tasks")
+    assert "nmjax.train.trained" in imports_from_outside("nmjax.tasks")
     assert "nmjax.tasks" in imports_from_outside("nmjax.evaluate")
 
 
@@ -177,21 +177,31 @@ def test_the_application_packages_are_split_by_job_into_short_files():
     # One reader of mesh and point files, one normalisation box.
     assert "nmjax.data.meshes" in imports_from_outside("nmjax.tasks")
     assert "nmjax.data.meshes" in imported_modules("nmjax.data.prepare")
-    for name in ("nmjax.runs", "nmjax.data.pipeline", "nmjax.evaluate.phase1"):
+    for name in ("nmjax.train.trained", "nmjax.data.pipeline", "nmjax.evaluate.phase1"):
         assert "nmjax.data.normalize" in imported_modules(name), name
 
 
 def test_the_run_folder_sits_below_the_trainers():
-    # run_folder is read by the trainers, runs and the application modules; it reads none of
-    # them (nor a model): what a folder holds is decided in one place below every reader.
-    above = ("nmjax.train", "nmjax.runs", "nmjax.evaluate", "nmjax.view", "nmjax.tasks")
+    # run_folder is read by the trainers, the trained models' owner and the application modules;
+    # it reads none of them (nor a model): what a folder holds is decided in one place below
+    # every reader.
+    above = ("nmjax.train", "nmjax.evaluate", "nmjax.view", "nmjax.tasks")
     above += ("nmjax.release", "nmjax.cli", "nmjax.bench", "nmjax.models", "nmjax.export")
     imports = imported_modules("nmjax.run_folder")
     assert not {m for m in imports if m.startswith(above)}, sorted(imports)
     assert imports <= {"nmjax.atomic", "nmjax.config", "nmjax.config_io", "nmjax.skeleton"}
     # The trainers' shared pieces read the run folder's names from it, never from a trainer.
     for name in ("nmjax.train.checkpoints", "nmjax.train.loop", "nmjax.train.metric_log"):
-        assert not imported_modules(name) & {"nmjax.train.skel", "nmjax.train.dyn", "nmjax.runs"}
+        assert not imported_modules(name) & {"nmjax.train.skel", "nmjax.train.dyn"}
+
+
+def test_a_trained_model_has_one_owner_below_both_trainers():
+    # Restoring a detector or a dynamics model for inference needs no trainer, and both
+    # trainers finish their runs through it.
+    assert not imported_modules("nmjax.train.trained") & {"nmjax.train.skel", "nmjax.train.dyn"}
+    for trainer in ("nmjax.train.skel", "nmjax.train.dyn", "nmjax.train.dyn_inputs"):
+        assert "nmjax.train.trained" in imported_modules(trainer), trainer
+    assert "nmjax.runs" not in MODULES
 
 
 def test_no_module_is_over_700_lines_except_the_kernel_collection():
@@ -211,9 +221,9 @@ def test_config_io_reads_no_configuration_class():
     assert "nmjax.config_io" in imported_modules("nmjax.config")
 
 
-# DESIGN section 2's layers, lowest first: a module imports from its own layer or below, never
-# above (the command line -> the applications -> the tasks -> runs -> the trainers -> the run
-# folder -> models, data and pictures -> pure math and the base modules).
+# The layers of docs/architecture.md, lowest first: a module imports from its own layer or below,
+# never above (the command line -> the applications -> the tasks -> the trainers and the trained
+# models' owner -> the run folder -> models, data and pictures -> pure math and the base modules).
 LAYERS = (
     (
         "nmjax",
@@ -229,9 +239,8 @@ LAYERS = (
         "nmjax.provenance",
     ),
     ("nmjax.models", "nmjax.data", "nmjax.viz"),
-    ("nmjax.run_folder",),
+    ("nmjax.run_folder", "nmjax.rows"),
     ("nmjax.train",),
-    ("nmjax.runs",),
     ("nmjax.tasks",),
     ("nmjax.evaluate", "nmjax.view", "nmjax.release", "nmjax.export", "nmjax.bench"),
     ("nmjax.cli",),
@@ -262,6 +271,6 @@ def test_every_module_imports_only_from_its_layer_or_below():
 
 
 def test_the_layer_rule_sees_an_upward_import():
-    assert layer_of("nmjax.train.loop") < layer_of("nmjax.runs") < layer_of("nmjax.cli.train")
+    assert layer_of("nmjax.train.loop") < layer_of("nmjax.tasks") < layer_of("nmjax.cli.train")
     assert layer_of("nmjax.metrics.sc") == layer_of("nmjax.geometry") == 0
     assert layer_of("nmjax.run_folder") < layer_of("nmjax.train.skel")

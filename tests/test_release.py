@@ -485,10 +485,11 @@ def imported(small):
 
 
 def test_import_writes_two_run_folders_of_the_imported_values(small, imported, monkeypatch):
-    from nmjax import keypoints, run_folder, runs
+    from nmjax import keypoints, run_folder
     from nmjax.config import DynTrainConfig, SkelTrainConfig
     from nmjax.skeleton import extract_skeleton
-    from nmjax.train.skel import Detector
+    from nmjax.train import trained
+    from nmjax.train.trained import Detector
 
     _, pth, opt = small
     root, skel_run, dyn_run, printed = imported
@@ -515,7 +516,7 @@ def test_import_writes_two_run_folders_of_the_imported_values(small, imported, m
     np.testing.assert_array_equal(restored.affinity_params[...], logits)
     tree = extract_skeleton(np.asarray(keypoints.affinity_from_params(jnp.asarray(logits))))
     assert run_folder.read_skeleton(skel_run).parents == tree.parents
-    model = runs.restore_dynamics(dyn_run)
+    model = trained.restore_dynamics(dyn_run)
     np.testing.assert_array_equal(
         model.initial_hidden[...], tensors["dyna_module.init_kypt_rnn_state"][0]
     )
@@ -591,7 +592,7 @@ def test_point_file_clip_is_the_releases_crop(imported):
     from nmjax.data import meshes
     from nmjax.data.normalize import normalize_sequence
     from nmjax.data.voxelize import voxelize
-    from nmjax.train.skel import Detector
+    from nmjax.train.trained import Detector
 
     root, skel_run, _, _ = imported
     detector = Detector.load(skel_run)

@@ -20,11 +20,11 @@ from tiny_configs import fake_run_dyn_config as tiny_cfg
 from tiny_configs import short_skel_config as skel_cfg
 from tiny_runs import poison_after
 
-from nmjax import atomic, run_folder, runs
+from nmjax import atomic, run_folder
 from nmjax.cli import main as nmjax_main
 from nmjax.config import resolve_epochs
 from nmjax.config_io import replace_fields
-from nmjax.train import dyn, loop, metric_log, skel
+from nmjax.train import dyn, loop, metric_log, skel, trained
 
 TORN = "3.orbax-checkpoint-tmp-1764633600"  # what orbax leaves of a save killed before its rename
 
@@ -118,7 +118,7 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     with pytest.raises(loop.NonFiniteLossError, match="at step 2"):
         dyn.train_dynamics(bad, progress=False, step_hook=poison_after(1))
     assert run_folder.checkpoint_steps(nan_run) == [1]
-    restored = runs.restore_dynamics(nan_run)
+    restored = trained.restore_dynamics(nan_run)
     assert all(bool(jnp.all(jnp.isfinite(x))) for x in jax.tree.leaves(restored))
 
 

@@ -15,7 +15,6 @@ from scipy.spatial.transform import Rotation
 from nmjax import atomic, cli, losses
 from nmjax import keypoints as kp_lib
 from nmjax.run_folder import pruned_skeleton
-from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
     Skeleton,
     algorithm1_parents,
@@ -28,6 +27,7 @@ from nmjax.skeleton import (
     skeleton_from_parents,
     skin_weights,
 )
+from nmjax.train.trained import extract_run_skeleton
 
 # Known trees as parent arrays (root is its own parent).
 CHAIN = [0, 0, 1, 2, 3, 4, 5, 6, 7]
@@ -505,8 +505,8 @@ def test_cli_writes_skeleton_json_and_figure(tmp_path, capsys):
 
 
 def test_pruned_skeleton_is_what_extract_skeleton_stored_at_its_threshold(tmp_path):
-    """`runs.pruned_skeleton` (what evaluate, view and the generation measures read) returns the
-    kept nodes and pruned tree skeleton.json stores, here extracted with a non-default
+    """`run_folder.pruned_skeleton` (what evaluate, view and the generation measures read)
+    returns the kept nodes and pruned tree skeleton.json stores, here extracted with a non-default
     `--prune-threshold`, not a new pruning of the stored intensities at the default 0.2."""
     run = tmp_path / "skel-synth-hand-0"
     run.mkdir()

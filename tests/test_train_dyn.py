@@ -1,5 +1,5 @@
-"""Tests of nmjax.train.dyn (and the phase-2 side of nmjax.runs) on a fake phase-1 run (a known
-tree moved by smooth rotations)."""
+"""Tests of nmjax.train.dyn (and the phase-2 side of nmjax.train.trained) on a fake phase-1 run
+(a known tree moved by smooth rotations)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from tiny_runs import FAKE_ORDER as ORDER
 from tiny_runs import FAKE_PARENTS as PARENTS
 from tiny_runs import spread_convolutions
 
-from nmjax import atomic, run_folder, runs
+from nmjax import atomic, run_folder
 from nmjax.cli import main as nmjax_main
 from nmjax.cli.train import dyn_config, dyn_parser
 from nmjax.config import DynamicsConfig, dyn_preset
@@ -30,7 +30,7 @@ from nmjax.data.normalize import normalize_sequence
 from nmjax.data.voxelize import voxelize
 from nmjax.models.detector import KeypointDetector
 from nmjax.models.dynamics import Dynamics, bone_lengths
-from nmjax.train import checkpoints, dyn, dyn_inputs, metric_log, skel
+from nmjax.train import checkpoints, dyn, dyn_inputs, metric_log, trained
 
 K = len(PARENTS)
 
@@ -180,8 +180,8 @@ def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
     dyn.train_dynamics(stopped, progress=False)
     half = dyn.train_dynamics(replace_fields(stopped, steps=4), resume=True, progress=False)
     run_full, run_half = full.run, half.run
-    full_state = nnx.state(runs.restore_dynamics(run_full))
-    half_state = nnx.state(runs.restore_dynamics(run_half))
+    full_state = nnx.state(trained.restore_dynamics(run_full))
+    half_state = nnx.state(trained.restore_dynamics(run_half))
     for a, b in zip(jax.tree.leaves(full_state), jax.tree.leaves(half_state), strict=True):
         np.testing.assert_array_equal(a, b)
     assert half.validation == full.validation and half.step == full.step == 4
@@ -211,7 +211,7 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
     with pytest.raises(ValueError, match="--resume"):
         dyn.train_dynamics(dyn_config(parse_dyn([*argv, "--run", str(run)])), progress=False)
 
-    model = runs.restore_dynamics(run)
+    model = trained.restore_dynamics(run)
     x = jnp.asarray(dyn_inputs.validation_crops(run_folder.load_trajectories(fake_run, "test"), 6))
     keypoints, rotations = model.generate(x[:, :2], 10, jax.random.key(0))
     assert keypoints.shape == (x.shape[0], 12, K, 4) and rotations.shape[-2:] == (3, 3)
@@ -258,14 +258,14 @@ def test_crop_inputs_are_the_detector_on_each_crop_normalised_on_its_own(tmp_pat
     cfg = small_skel_config(tmp_path)  # an untrained detector: G=8, K=4, phase-1 T=3
     model = KeypointDetector(cfg.model, rngs=nnx.Rngs(0))
     spread_convolutions(model)  # keypoints that follow the body, as a trained detector's do
-    detector = skel.Detector.of(model, cfg, tmp_path)
+    detector = trained.Detector.of(model, cfg, tmp_path)
     seq, frames, grid = translated_body(), 4, cfg.data.grid
     crop = dyn_inputs.crop_inputs(detector, [seq], [seq], frames)
     assert crop.crops.num_starts == 6 and crop.crops.detected == 0  # every start of the 9 frames
 
     # "sequence": one box over the walk, the detector on consecutive windows (export_keypoints).
-    whole = runs.sequence_voxels(seq, cfg.data.sample_rate, grid)
-    windows = detector.keypoints(runs.sequence_windows(whole, cfg.data.frames))
+    whole = trained.sequence_voxels(seq, cfg.data.sample_rate, grid)
+    windows = detector.keypoints(trained.sequence_windows(whole, cfg.data.frames))
     trajectory = windows.reshape(-1, *windows.shape[2:])[: seq.num_frames]
     cut = dyn_inputs.sequence_inputs(
         {"train": {"walk": trajectory}, "test": {"walk": trajectory}}, frames
@@ -318,7 +318,7 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     cadence = dict(steps=2, ckpt_every=2, val_every=2, log_every=1)
     source_cfg = tiny_cfg(fake_run, tmp_path / "source", **cadence)
     dyn.train_dynamics(source_cfg, progress=False)
-    source = jax.tree.leaves(nnx.state(runs.restore_dynamics(tmp_path / "source")))
+    source = jax.tree.leaves(nnx.state(trained.restore_dynamics(tmp_path / "source")))
     seen = {}
 
     def hook(step, state):

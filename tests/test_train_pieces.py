@@ -116,10 +116,10 @@ def test_prepare_run_dir(tmp_path):
 
 
 def _state(features: int, seed: int = 0):
+    """A training state {"model", "opt"} as the trainers save it."""
     model = nnx.Linear(3, features, rngs=nnx.Rngs(seed))
-    optimizer = nnx.Optimizer(model, optim.make_optimizer(1e-3), wrt=nnx.Param)
-    _, state = nnx.split((model, optimizer))
-    return state
+    opt = optim.make_optimizer(1e-3).init(nnx.state(model, nnx.Param))
+    return {"model": nnx.state(model), "opt": opt}
 
 
 def _abstract(state):
@@ -173,8 +173,8 @@ from flax import nnx
 from nmjax import config, run_folder
 from nmjax.train import checkpoints, metric_log, optim
 model = nnx.Linear(3, 4, rngs=nnx.Rngs(0))
-optimizer = nnx.Optimizer(model, optim.make_optimizer(1e-3), wrt=nnx.Param)
-_, state = nnx.split((model, optimizer))
+opt = optim.make_optimizer(1e-3).init(nnx.state(model, nnx.Param))
+state = {"model": nnx.state(model), "opt": opt}
 abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), state)
 try:
     checkpoints.Checkpointer(sys.argv[1], keep=2).restore(abstract)

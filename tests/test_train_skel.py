@@ -1,5 +1,5 @@
 """Tests of phase-1 training (nmjax.train.skel): learning, single compilation, exact resume,
-NaN stop, bad input, run-folder artefacts (nmjax.runs)."""
+NaN stop, bad input, run-folder artefacts (nmjax.train.trained)."""
 
 from __future__ import annotations
 
@@ -18,11 +18,11 @@ from flax import nnx
 from tiny_configs import short_skel_config as _cfg
 from tiny_runs import poison_after
 
-from nmjax import config, config_io, run_folder, runs
+from nmjax import config, config_io, run_folder
 from nmjax.cli import main as nmjax_main
 from nmjax.config import skel_preset
 from nmjax.config_io import replace_fields
-from nmjax.train import checkpoints, metric_log, parallel, skel
+from nmjax.train import checkpoints, metric_log, parallel, skel, trained
 
 
 def _leaves(state):
@@ -80,7 +80,6 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     straight = skel.train_skeleton(
         replace_fields(cfg, run=str(tmp_path / "straight")), progress=False
     )
-    runs.finish_phase1(tmp_path / "straight")
     first = skel.train_skeleton(
         replace_fields(cfg, steps=3, run=str(tmp_path / "resumed")),
         progress=False,
@@ -121,7 +120,7 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     assert affinity.shape == (n, k, k) and affinity.dtype == np.float32
     np.testing.assert_allclose(affinity.sum(-1), 1.0, atol=1e-5)
     stats = np.load(run / "keypoint_stats.npz")
-    assert sorted(stats.files) == sorted(run_folder.STATS_KEYS)  # what nmjax.runs reads
+    assert sorted(stats.files) == sorted(run_folder.STATS_KEYS)  # what nmjax.train.trained reads
     assert stats["intensities"].shape == (k,)
     assert stats["rest_positions"].shape == (k, 3)
     assert stats["example_voxels"].shape == (g, g, g)
@@ -145,9 +144,9 @@ def test_resume_equals_straight_run_and_writes_artifacts(three_sequences, tmp_pa
     # last window padded with the last frame), computed here without the exporter's batching.
     from nmjax.data.datasets import load_sequences
 
-    model, _ = skel.restore_detector(run)
+    model, _ = trained.restore_detector(run)
     (seq,) = load_sequences(cfg.data.name, "test", cfg.data.root)
-    windows = runs.sequence_windows(runs.sequence_voxels(seq, cfg.data.sample_rate, 8), 3)
+    windows = trained.sequence_windows(trained.sequence_voxels(seq, cfg.data.sample_rate, 8), 3)
     direct = np.concatenate([np.asarray(model.detect(jnp.asarray(w[None]))[1][0]) for w in windows])
     with np.load(run / "keypoints_test.npz") as archive:
         np.testing.assert_allclose(archive[seq.name], direct[:8], rtol=1e-5, atol=1e-6)
@@ -173,7 +172,7 @@ def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, 
     )
     # The exported detector carries the average, not the last weights.
     state = restored["straight"]
-    exported, _ = skel.restore_detector(tmp_path / "straight", step=6)
+    exported, _ = trained.restore_detector(tmp_path / "straight", step=6)
     last = nnx.merge(graphdef, state["model"])
     average = optax.tree.bias_correction(state["ema"].ema, 0.5, state["ema"].count)
     got = jax.tree.leaves(nnx.state(exported, nnx.Param))
@@ -185,7 +184,7 @@ def test_weight_average_resumes_exactly_and_is_the_exported_detector(data_root, 
 
 def test_sequence_windows_pad_with_last_frame():
     frames = np.arange(7, dtype=np.float32)[:, None, None, None] * np.ones((7, 2, 2, 2))
-    windows = runs.sequence_windows(frames, 3)
+    windows = trained.sequence_windows(frames, 3)
     assert windows.shape == (3, 3, 2, 2, 2)
     np.testing.assert_array_equal(windows[:, :, 0, 0, 0].ravel(), [0, 1, 2, 3, 4, 5, 6, 6, 6])
 
@@ -230,18 +229,17 @@ def test_time_limit_stops_after_the_current_step_as_a_last_step(three_sequences,
     # checkpointed and finalised like step `steps` would be.
     cfg = _cfg(three_sequences, time_limit_minutes=1e-9, log_every=5, val_every=5, ckpt_every=5)
     summary = skel.train_skeleton(replace_fields(cfg, run=str(tmp_path / "run")), progress=False)
-    runs.finish_phase1(tmp_path / "run")
-    short = skel.train_skeleton(replace_fields(cfg, run=str(tmp_path / "short")), progress=False)
-    runs.finish_phase1(tmp_path / "short", export=False)
-    assert (tmp_path / "short" / "skeleton.json").is_file() and short.step == 1
-    assert not list((tmp_path / "short").glob("keypoints_*.npz"))
+    # The entry leaves a complete phase-1 run: the skeleton and the keypoints of both splits.
+    assert (tmp_path / "run" / run_folder.SKELETON_FILE).is_file()
+    for split in run_folder.SPLITS:
+        assert run_folder.keypoints_file(tmp_path / "run", split).is_file()
     assert summary.step == 1 and summary.stop_reason == "time_limit"
     assert "val/loss" in summary.validation
     with checkpoints.Checkpointer(tmp_path / "run" / "checkpoints", keep=3) as ckpt:
         assert ckpt.all_steps() == [1]
     assert (tmp_path / "run" / "skeleton.json").is_file()
     # The exporter can read another copy of the dataset and write elsewhere: same keypoints.
-    again = runs.export_keypoints(
+    again = trained.export_keypoints(
         tmp_path / "run", "test", data_root=three_sequences, path=tmp_path / "again.npz"
     )
     with np.load(again) as a, np.load(tmp_path / "run" / "keypoints_test.npz") as b:
@@ -413,7 +411,7 @@ def test_init_from_starts_a_new_run_from_the_source_weights(three_sequences, tmp
     resolved = config.resolve_epochs(tuned, 2, 1)  # as the trainer resolves it
     graphdef, state = skel.build(resolved)
     mesh = parallel.data_mesh()
-    weights = {**state, "model": nnx.state(skel.restore_detector(source)[0])}
+    weights = {**state, "model": nnx.state(trained.restore_detector(source)[0])}
     batch = next(pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed))
     _, eval_fn = skel.make_steps(graphdef, resolved, mesh)
     terms, _ = eval_fn(

@@ -14,8 +14,9 @@ import pytest
 from browser import Chromium, require_browser
 from tiny_runs import PARENTS, make_runs
 
-from nmjax import atomic, run_folder, runs, tasks, view
+from nmjax import atomic, run_folder, tasks, view
 from nmjax.cli import main as nmjax_main
+from nmjax.train import trained
 
 K = len(PARENTS)
 # Nodes 2 and 4 fall below the pruning threshold (0.2): 3 and 5 then hang off node 1.
@@ -122,7 +123,7 @@ def tiny(tmp_path_factory):
 
     folders = make_runs(tmp_path_factory.mktemp("tiny-view"))
     skel = folders["skel"]
-    runs.export_keypoints(skel, "train")
+    trained.export_keypoints(skel, "train")
     tree = skeleton_from_parents(np.array(PARENTS))
     pruned, keep = prune(tree, INTENSITIES)  # as `extract_run_skeleton` stores them
     tree.save(
@@ -148,7 +149,7 @@ def sequence_frames(tiny, split, name):
     from nmjax.data.datasets import load_sequences
 
     (seq,) = [s for s in load_sequences("synth-arm", split, tiny["data"]) if s.name == name]
-    return runs.sequence_points(seq, 1)
+    return trained.sequence_points(seq, 1)
 
 
 def test_phase1_scene_follows_the_frame_slider(tiny):

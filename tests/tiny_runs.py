@@ -24,11 +24,11 @@ def make_runs(root: Path) -> dict[str, Path]:
     each), a tiny phase-1 run (G=16, K=6) and its "nm" and "vrnn" phase-2 runs."""
     from flax import nnx
 
-    from nmjax import run_folder, runs
+    from nmjax import run_folder
     from nmjax.config import dyn_preset, skel_preset
     from nmjax.data import synthetic
     from nmjax.skeleton import skeleton_from_parents
-    from nmjax.train import checkpoints, dyn, skel
+    from nmjax.train import checkpoints, dyn, skel, trained
 
     data = synthetic.generate(
         "synth-arm", root / "data", num_sequences=3, frames=12, points=1500, progress=False
@@ -53,7 +53,7 @@ def make_runs(root: Path) -> dict[str, Path]:
         pruned_parents=list(PARENTS),
         keep=[True] * len(PARENTS),
     )
-    runs.export_keypoints(skel_run, "test")
+    trained.export_keypoints(skel_run, "test")
     runs = {"data": data, "skel": skel_run}
     for kind in ("nm", "vrnn"):
         dcfg = dyn_preset("synth-arm", "tiny")

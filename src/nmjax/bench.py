@@ -286,7 +286,7 @@ def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) ->
 
     from nmjax.data.datasets import load_sequences
     from nmjax.data.synthetic import ensure_dataset
-    from nmjax.train import dyn_inputs, skel
+    from nmjax.train import dyn_inputs, skel, trained
 
     skel.check_config(cfg)
     root = ensure_dataset(cfg.data.name, cfg.data.root)  # generated here, untimed
@@ -297,7 +297,7 @@ def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) ->
         for t in dyn_inputs.crop_starts(seq.num_frames, frames, rate)
     ]
     graphdef, state = skel.build(cfg)
-    detector = skel.Detector.of(nnx.merge(graphdef, state["model"]), cfg, "bench")
+    detector = trained.Detector.of(nnx.merge(graphdef, state["model"]), cfg, "bench")
 
     def voxels(i: int) -> jax.Array:
         part = [clips[(i * b + j) % len(clips)] for j in range(b)]
@@ -306,7 +306,7 @@ def bench_detect(cfg: Any, preset: str, frames: int, steps: int, warmup: int) ->
         )
 
     compiled, compile_s = _timed_compile(
-        skel.detect_batch, detector.graphdef, detector.state, voxels(0)
+        trained.detect_batch, detector.graphdef, detector.state, voxels(0)
     )
     load, compute = [], []
     for i in range(warmup + steps):

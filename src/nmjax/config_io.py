@@ -30,8 +30,9 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 
 
 def flatten_config(config: Any) -> dict[str, Any]:
-    """{dotted field: value} of a configuration, as `config_to_dict` writes the values (the names
-    that `--set` and the resume and fine-tuning checks use)."""
+    """{dotted field: value} of a configuration (a dataclass, or its `config_to_dict` form), as
+    `config_to_dict` writes the values (the names that `--set` and the resume and fine-tuning
+    checks use)."""
 
     def walk(tree: Mapping[str, Any], prefix: str) -> dict[str, Any]:
         out: dict[str, Any] = {}
@@ -42,7 +43,7 @@ def flatten_config(config: Any) -> dict[str, Any]:
                 out[f"{prefix}{key}"] = value
         return out
 
-    return walk(config_to_dict(config), "")
+    return walk(config if isinstance(config, Mapping) else config_to_dict(config), "")
 
 
 def config_from_dict(

@@ -19,7 +19,8 @@ Runs live under `RUNS_ROOT` unless a config names its folder; `default_run_dir` 
 dataset by that name. A folder that holds anything is never reused unless the run resumes or
 overwrites it (`check_run_dir`).
 
-Nothing here runs a model: loading a trained network from a folder is `nmjax.runs`'s.
+Nothing here runs a model: loading a trained network from a folder is
+`nmjax.train.trained`'s.
 """
 
 from __future__ import annotations
@@ -113,9 +114,13 @@ def find_skel_run(
 
 # --- config.json and the refuse-to-reuse rule ---------------------------------------------------
 
-# Fields a resumed run may change: how long it trains and what it reports, not what it computes
-# (dotted as `flatten_config` spells them).
-RESUMABLE_FIELDS = frozenset(
+# Fields that say where a run and its data live, not what it computes (dotted as
+# `flatten_config` spells them): two runs that differ only in them trained the same thing
+# (`nmjax.rows` compares results rows without them).
+LOCATION_FIELDS = frozenset({"run", "data.root"})
+# Fields a resumed run may change: where it lives, how long it trains and what it reports, not
+# what it computes.
+RESUMABLE_FIELDS = LOCATION_FIELDS | frozenset(
     {
         "loop.steps",
         "loop.log_every",
@@ -123,8 +128,6 @@ RESUMABLE_FIELDS = frozenset(
         "loop.ckpt_every",
         "loop.keep_every",
         "loop.time_limit_minutes",
-        "run",
-        "data.root",
     }
 )
 

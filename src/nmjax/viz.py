@@ -158,6 +158,38 @@ def draw_skeleton(
     save_figure(fig, path, dpi=120, tight=False, crop=True)
 
 
+def draw_pruned_tree(
+    ax,
+    keypoints: np.ndarray,
+    parents,
+    keep: np.ndarray,
+    points: np.ndarray | None = None,
+    title: str = "",
+) -> None:
+    """A pruned tree on one frame's keypoints over the body's points, on 3D axes `ax` (one cell
+    of a results figure).
+
+    Args:
+      keypoints: (K, >= 3) the frame's keypoints in the cube [-1, 1]^3.
+      parents: (K,) the pruned tree, a root its own parent.
+      keep: (K,) bool, the kept nodes: only they and the bones between them are drawn.
+      points: (N, 3) the frame's occupied cells, drawn faintly behind; None: none.
+      title: the cell's title.
+    """
+    kp = np.asarray(keypoints)[:, :3]
+    keep = np.asarray(keep, bool)
+    if points is not None and len(points):
+        ax.scatter(
+            *np.asarray(points).reshape(-1, 3).T, s=0.6, c="0.6", alpha=0.25, depthshade=False
+        )
+    for k, p in enumerate(parents):
+        if p != k and keep[k]:
+            ax.plot(*kp[[p, k]].T, "-", c="tab:blue", lw=1.8)
+    ax.scatter(*kp[keep].T, s=10, c="tab:red", depthshade=False)
+    ax.set(xlim=(-1, 1), ylim=(-1, 1), zlim=(-1, 1), xticks=[], yticks=[], zticks=[])
+    ax.set_title(title, fontsize=7)
+
+
 def plot_motion(
     path: str | os.PathLike,
     observed: np.ndarray,

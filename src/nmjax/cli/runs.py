@@ -16,8 +16,9 @@ from nmjax.cli import parser
 
 
 def extract_skeleton(argv: list[str]) -> int:
-    from nmjax import run_folder, runs
+    from nmjax import run_folder
     from nmjax.skeleton import DEFAULT_NEIGHBORS, METHODS, PRUNE_THRESHOLD
+    from nmjax.train import trained
 
     p = parser(
         "extract-skeleton",
@@ -46,7 +47,7 @@ def extract_skeleton(argv: list[str]) -> int:
     )
     args = p.parse_args(argv)
     start = time.perf_counter()
-    skeleton = runs.extract_run_skeleton(
+    skeleton = trained.extract_run_skeleton(
         args.run, args.neighbors, args.prune_threshold, args.method
     )
     seconds = time.perf_counter() - start
@@ -59,8 +60,8 @@ def extract_skeleton(argv: list[str]) -> int:
 
 
 def export_keypoints(argv: list[str]) -> int:
-    from nmjax import run_folder, runs
-    from nmjax.train import skel
+    from nmjax import run_folder
+    from nmjax.train import trained
 
     p = parser(
         "export-keypoints",
@@ -75,7 +76,7 @@ def export_keypoints(argv: list[str]) -> int:
     args = p.parse_args(argv)
     if not Path(args.run).is_dir():
         raise FileNotFoundError(f"--run {args.run} does not exist; give a phase-1 run folder")
-    detector = skel.Detector.load(args.run, args.step)
+    detector = trained.Detector.load(args.run, args.step)
     for split in args.split:
-        print(f"wrote {runs.export_keypoints(args.run, split, detector=detector)}")
+        print(f"wrote {trained.export_keypoints(args.run, split, detector=detector)}")
     return 0

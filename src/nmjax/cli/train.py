@@ -205,7 +205,6 @@ def train_skel(argv: list[str]) -> int:
         if args.steps is not None:
             p.error("give --steps or --fit-minutes, not both")
     _initialize(args)
-    from nmjax import runs
     from nmjax.train import skel
 
     cfg = skel_config(args)
@@ -214,7 +213,6 @@ def train_skel(argv: list[str]) -> int:
     summary = skel.train_skeleton(
         cfg, resume=args.resume, overwrite=args.overwrite, progress=not args.no_progress
     )
-    runs.finish_phase1(summary.run)
     record = {
         "run": str(summary.run),
         "start_step": summary.start_step,

@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, provenance, run_folder, runs, tasks
+from nmjax import atomic, metrics, provenance, run_folder, tasks
 from nmjax.evaluate.stats import summarize
 from nmjax.evaluate.tables import fmt
-from nmjax.train import dyn_inputs
-from nmjax.train.skel import Detector
+from nmjax.train import dyn_inputs, trained
+from nmjax.train.trained import Detector
 
 GEN_HORIZONS = (25, 100, 300)
 GEN_METHODS = ("Ours", "VRNN", "Hold last pose")
@@ -242,7 +242,7 @@ def evaluate_generation(
       seed: PRNG seed of the samples.
       real_trajectories: {sequence: (T_seq, K, 4)} the real clips are cut from instead of the
         test keypoints, e.g. the detector's keypoints of longer sequences of the same body
-        (`runs.export_keypoints(..., data_root=...)`), so that long horizons have real clips.
+        (`trained.export_keypoints(..., data_root=...)`), so that long horizons have real clips.
       conditioning: ([(sequence, start)], x_cond (B, cond, K, 4)) the clips to condition on;
         default `conditioning_clips` of `trajectories` (the models' "crop" inputs pass the same
         clips detected on their own, `crop_conditioning`).
@@ -356,7 +356,7 @@ def evaluate_generation_run(
         raise ValueError(
             f"{run} is a phase-1 run; --generation needs a phase-2 'nm' run (nmjax train-dyn)"
         )
-    dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
+    dyn_cfg, skel_run, vrnn_run = trained.phase2_runs(run, vrnn_run)
     skeleton = run_folder.pruned_skeleton(skel_run)
     if skeleton is None:
         raise FileNotFoundError(
@@ -370,9 +370,9 @@ def evaluate_generation_run(
             dyn_inputs.phase2_detector(skel_run), names, cond, dyn_cfg.frames
         )
         conditioning = (names, x_cond)
-    models = {"Ours": nnx.split(runs.restore_dynamics(run))}
+    models = {"Ours": nnx.split(trained.restore_dynamics(run))}
     if vrnn_run is not None:
-        models["VRNN"] = nnx.split(runs.restore_dynamics(vrnn_run))
+        models["VRNN"] = nnx.split(trained.restore_dynamics(vrnn_run))
     settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
     settings["inputs"] = dyn_cfg.inputs
     real = None

@@ -12,9 +12,8 @@ import numpy as np
 from nmjax import metrics, run_folder
 from nmjax.evaluate.stats import summarize
 from nmjax.evaluate.tables import SKELETON_TRUTH_COLUMNS
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
-# One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
 # One line per measure of results.json, recorded in every results file (`nmjax.provenance`).
 PHASE1_METRICS = {
     "sc": "SC-score, Eq. 21 as published: in each frame keypoints with alpha < 0.2 are no "
@@ -234,3 +233,22 @@ def phase1_scores(results: dict) -> dict[str, float]:
         if key in results:
             scores[key] = results[key]
     return scores
+
+
+# Occupied cells a picture frame keeps: enough to show the body's shape behind the skeleton.
+PICTURE_POINTS = 1500
+
+
+def picture_frame(detector: Detector, points: int = PICTURE_POINTS) -> dict[str, Any]:
+    """One test frame for pictures of a run: the middle frame of the first test crop's
+    keypoints (K, 4) and a fixed sample of `points` of its occupied cells, as lists (rounded to
+    1e-4 and 1e-3: the cells' spacing is at least 1/32 of the cube), for a results row."""
+    _, voxels, _, keypoints, _ = next(iter(phase1_outputs(detector, max_crops=1)))
+    t = voxels.shape[1] // 2
+    cells = metrics.voxel_points(voxels[0, t])
+    if len(cells) > points:
+        cells = cells[np.random.default_rng(0).choice(len(cells), points, replace=False)]
+    return {
+        "keypoints": np.round(keypoints[0, t], 4).tolist(),
+        "points": np.round(cells, 3).tolist(),
+    }

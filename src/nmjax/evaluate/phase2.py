@@ -12,14 +12,14 @@ import jax
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, metrics, provenance, run_folder, runs
+from nmjax import atomic, metrics, provenance, run_folder
 from nmjax.data.datasets import pad_with_last
 from nmjax.evaluate.phase1 import PHASE1_METRICS, evaluate_phase1
 from nmjax.evaluate.stats import summarize_per_rate
 from nmjax.evaluate.tables import markdown_tables
 from nmjax.tasks import Interpolators
-from nmjax.train import dyn_inputs
-from nmjax.train.skel import Detector
+from nmjax.train import dyn_inputs, trained
+from nmjax.train.trained import Detector
 
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
 METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
@@ -135,7 +135,11 @@ def evaluate_interpolation(
                     f"{run_folder.keypoints_file(detector.run, split)}; re-export them with "
                     f"`nmjax export-keypoints --run {detector.run}`"
                 )
-            vox = runs.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid) if voxels else None
+            vox = (
+                trained.sequence_voxels(seq, cfg.data.sample_rate, cfg.data.grid)
+                if voxels
+                else None
+            )
             sequence = (trajectories[seq.name], vox)
         sampled = -(-seq.num_frames // cfg.data.sample_rate)  # frames of the sampled sequence
         for rate in rates:
@@ -186,7 +190,7 @@ def evaluate_run(
     definitions = {**PHASE1_METRICS, **(INTERPOLATION_METRICS if dyn else {})}
     results: dict[str, Any] = {"provenance": provenance.stamp(definitions), "run": str(run)}
     if dyn:
-        dyn_cfg, skel_run, vrnn_run = runs.phase2_runs(run, vrnn_run)
+        dyn_cfg, skel_run, vrnn_run = trained.phase2_runs(run, vrnn_run)
         results["skel_run"] = str(skel_run)
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
     else:
@@ -194,8 +198,8 @@ def evaluate_run(
     detector = Detector.load(skel_run)
     results["phase1"] = evaluate_phase1(detector, max_crops=max_crops)
     if dyn_cfg is not None:
-        nm = nnx.split(runs.restore_dynamics(run))
-        vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
+        nm = nnx.split(trained.restore_dynamics(run))
+        vrnn = None if vrnn_run is None else nnx.split(trained.restore_dynamics(vrnn_run))
         traj = None
         if dyn_cfg.inputs == "sequence":
             traj = run_folder.load_trajectories(skel_run, "test")

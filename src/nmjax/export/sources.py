@@ -257,10 +257,11 @@ def _phase2(run: Path, options: Options) -> tuple[Rig, int]:
     import jax.numpy as jnp
     from flax import nnx
 
-    from nmjax import geometry, run_folder, runs, tasks
+    from nmjax import geometry, run_folder, tasks
     from nmjax.models.dynamics import bone_lengths
+    from nmjax.train import trained
 
-    model, _, skel_run = runs.load_phase2(run)
+    model, _, skel_run = trained.load_phase2(run)
     x = _pick(run_folder.load_trajectories(skel_run, options.split), options, skel_run)[None]
     local, recon = tasks.infer_rotations_jit(
         *nnx.split(model), jnp.asarray(x), jax.random.key(options.seed)

@@ -48,10 +48,10 @@ def keypoint_motion(detector: Any, cfg: Any, example: str | Path | None) -> tupl
     Raises:
       ValueError, FileNotFoundError: an unreadable example or dataset (`check_dataset` first).
     """
-    from nmjax.train import skel
+    from nmjax.train import trained
 
     data = cfg.data
-    det = skel.Detector.of(detector, cfg, "")
+    det = trained.Detector.of(detector, cfg, "")
     if example is not None:
         from nmjax.tasks import point_file_keypoints
 
@@ -117,7 +117,7 @@ def import_release(
     from the configurations of the options and fills every parameter (`build_networks`), then
     writes, into a temporary folder beside `run` that is renamed onto it at the end:
     skel/: config.json, checkpoints/0, affinity.npy, keypoint_stats.npz (of `keypoint_motion`),
-    skeleton.json and its figure (`runs.extract_run_skeleton`: Algorithm 1 on the imported
+    skeleton.json and its figure (`trained.extract_run_skeleton`: Algorithm 1 on the imported
     affinity); dyn/: config.json naming skel as its phase-1 run, checkpoints/0; and in both
     release.json (`import_record` and the `nmjax.provenance` stamp). Nothing is left behind when
     a step fails.
@@ -132,9 +132,9 @@ def import_release(
     """
     from tqdm import tqdm
 
-    from nmjax import provenance, run_folder, runs
+    from nmjax import provenance, run_folder
     from nmjax.data.meshes import load_point_sequence
-    from nmjax.train import dyn, skel
+    from nmjax.train import dyn, skel, trained
 
     run = check_run_folder(run, overwrite)
     checkpoint, options = Path(checkpoint), Path(options)
@@ -165,7 +165,7 @@ def import_release(
         try:
             save_run(tmp / "skel", skel_cfg, detector, skel.StepSettings.of(skel_cfg).optimizer)
             run_folder.write_phase1_artifacts(tmp / "skel", detector.affinity(), keypoints, voxels)
-            runs.extract_run_skeleton(tmp / "skel")
+            trained.extract_run_skeleton(tmp / "skel")
             save_run(tmp / "dyn", dyn_cfg, dynamics, dyn.StepSettings.of(dyn_cfg).optimizer)
             for folder in ("skel", "dyn"):
                 provenance.write_json(tmp / folder / PROVENANCE_FILE, record, stamp)

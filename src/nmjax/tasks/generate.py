@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, run_folder, runs
+from nmjax import atomic, run_folder
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics
 from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
-from nmjax.train import dyn_inputs, skel
+from nmjax.train import dyn_inputs, trained
 
 
 def generate_motion(
@@ -91,10 +91,10 @@ def generation_clips(
         real = np.array([min(len(trajectories[n]), total) for n in names], np.int32)
         first = None
         if voxels:
-            detector = skel.Detector.load(skel_run)
+            detector = trained.Detector.load(skel_run)
             seqs, data = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data
             first = np.stack(
-                [runs.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
+                [trained.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
             )
         return TaskClips(names, observed, real, first)
     detector = dyn_inputs.phase2_detector(skel_run)
@@ -106,7 +106,7 @@ def generation_clips(
     for name, frames in zip(names, real, strict=True):
         vox = dyn_inputs.clip_voxels(seqs[name], 0, max(total, box), data, box_frames=box)[:total]
         x_cond = detector.keypoints(vox[None, :cond])[0]
-        rest = detector.keypoints(runs.sequence_windows(vox, cfg.frames))
+        rest = detector.keypoints(trained.sequence_windows(vox, cfg.frames))
         rest = rest.reshape(-1, *rest.shape[2:])[:total]
         clip = np.concatenate([x_cond, rest[cond:]])
         clip[frames:] = clip[frames - 1]  # past the sequence's end the last real frame is held
@@ -149,7 +149,7 @@ def run_generate(
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
-    model, cfg, skel_run = runs.load_phase2(run)
+    model, cfg, skel_run = trained.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "generate"
     if source_file is not None:
         name, x_cond, first = source_file_clip(skel_run, source_file, cond, source_rate)
@@ -179,7 +179,7 @@ def run_generate(
         **rig_arrays(skel_run, len(model.parents)),
     )
     if voxels:
-        detector = skel.Detector.load(skel_run)
+        detector = trained.Detector.load(skel_run)
         decoded = [detector.decode(keypoints[:, s], clips.first_voxels) for s in range(samples)]
         atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
     for i, name in enumerate(names):

@@ -19,7 +19,7 @@ import numpy as np
 
 from nmjax import run_folder
 from nmjax.data.datasets import pad_with_last
-from nmjax.train import skel
+from nmjax.train import trained
 
 
 def pick_inputs(
@@ -71,7 +71,7 @@ def rig_arrays(skel_run: Path, num_keypoints: int) -> dict[str, np.ndarray]:
 
 
 def point_file_keypoints(
-    detector: skel.Detector, path: str | os.PathLike, frames: int, sample_rate: int
+    detector: trained.Detector, path: str | os.PathLike, frames: int, sample_rate: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point-sequence file's motion as the release's demos take it: `frames` frames from the
     first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
@@ -104,11 +104,7 @@ def point_file_keypoints(
     clip, _ = normalize_sequence(points[:span:sample_rate])
     voxels = voxelize(clip, detector.cfg.data.grid)
     # One crop: a batch of one instead of the training batch the detector pads to.
-    one = dataclasses.replace(
-        detector.cfg, data=dataclasses.replace(detector.cfg.data, batch_size=1)
-    )
-    single = skel.Detector(detector.run, one, detector.graphdef, detector.state)
-    return single.keypoints(voxels[None])[0], voxels
+    return detector.with_batch_size(1).keypoints(voxels[None])[0], voxels
 
 
 def source_file_clip(
@@ -116,7 +112,7 @@ def source_file_clip(
 ) -> tuple[str, np.ndarray, np.ndarray]:
     """(name, keypoints (1, F, K, 4), first voxel frame (1, G, G, G)) of `point_file_keypoints`
     with the phase-1 run's detector; `sample_rate` None takes the run's."""
-    detector = skel.Detector.load(skel_run)
+    detector = trained.Detector.load(skel_run)
     rate = detector.cfg.data.sample_rate if sample_rate is None else sample_rate
     keypoints, voxels = point_file_keypoints(detector, path, frames, rate)
     return Path(path).stem, keypoints[None].astype(np.float32), voxels[None, 0]

@@ -21,11 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, run_folder, runs
+from nmjax import atomic, geometry, run_folder
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics, bone_lengths
 from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
-from nmjax.train import dyn_inputs
+from nmjax.train import dyn_inputs, trained
 
 
 def interpolate_motion(
@@ -216,17 +216,17 @@ def run_interpolate(
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
-    model, cfg, skel_run = runs.load_phase2(run)
+    model, cfg, skel_run = trained.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / "interpolate"
     if vrnn_run is not None:
-        runs.phase2_runs(Path(run), vrnn_run)  # refuses a baseline of another skeleton or input
+        trained.phase2_runs(Path(run), vrnn_run)  # refuses a baseline of another skeleton or input
     if source_file is not None:
         name, truth, _ = source_file_clip(skel_run, source_file, gap + 1, source_rate)
         names = [name]
     else:
         clips = interpolation_clips(cfg, skel_run, inputs, gap)
         names, truth = clips.names, clips.keypoints
-    vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
+    vrnn = None if vrnn_run is None else nnx.split(trained.restore_dynamics(vrnn_run))
     interp = Interpolators(nnx.split(model), vrnn, trajectories)
     methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
     key = jax.random.key(seed)

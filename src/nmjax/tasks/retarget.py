@@ -15,10 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, run_folder, runs
+from nmjax import atomic, geometry, run_folder
 from nmjax.models.dynamics import Dynamics
 from nmjax.tasks.inputs import pick_inputs, rig_arrays, source_file_clip
-from nmjax.train import skel
+from nmjax.train import trained
 
 
 def infer_rotations(
@@ -228,7 +228,7 @@ def retarget_pose(
     return rest, joints, rotations
 
 
-def detect_target_joints(detector: skel.Detector, points: np.ndarray) -> np.ndarray:
+def detect_target_joints(detector: trained.Detector, points: np.ndarray) -> np.ndarray:
     """Keypoints (K, 4) of one normalised point cloud, the frame repeated over a T-frame crop."""
     from nmjax.data.voxelize import voxelize
 
@@ -288,7 +288,7 @@ def run_retarget(
     from nmjax.skeleton import skin_weights
 
     mesh = load_mesh(target)
-    model, cfg, skel_run = runs.load_phase2(run)
+    model, cfg, skel_run = trained.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / f"retarget-{Path(target).stem}"
     if source_file is not None:
         if source is not None:
@@ -307,7 +307,7 @@ def run_retarget(
     cloud = apply_box(
         sample_surface(mesh.vertices, mesh.faces, points, seed, str(target)), bmin, scale
     )
-    detector = skel.Detector.load(skel_run)
+    detector = trained.Detector.load(skel_run)
     target_kp = detect_target_joints(detector, cloud.astype(np.float32))
     vertices = apply_box(mesh.vertices, bmin, scale)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import gc
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -81,15 +81,24 @@ def checked_weights(weights: Any, expected: Any, source: str) -> Any:
     return weights
 
 
+# The parts of a training state (`optim.init_state`), each saved as its own checkpoint item so
+# that inference restores the model alone, without building an optimizer state.
+STATE_PARTS = ("model", "opt", "ema")
+# The one item that held the whole state in checkpoints written before the parts were split.
+LEGACY_STATE_ITEM = "state"
+
+
 class Checkpointer:
     """One `ocp.CheckpointManager`: the last `keep` checkpoints plus the best by `best_metric`,
     plus every checkpoint whose step is a multiple of `keep_every` (0: none), which the retention
     policy never deletes (a run scored along its training, `experiments/phase1_budget.py`).
 
-    Each checkpoint holds the item `state` (a pytree, normally `nnx.state((model, optimizer))`)
-    and, when given, the item `data` (the grain iterator's position). Saves are synchronous so a
-    checkpoint is complete on disk when `save` returns, before the next step donates the buffers.
-    Existing checkpoints are never overwritten or deleted except by the retention policy.
+    A checkpoint holds one item per part of the training state {"model", "opt"[, "ema"]}
+    (`STATE_PARTS`) and, when given, the item `data` (the grain iterator's position); a
+    checkpoint written before the split holds the whole state as the one item "state" and
+    still restores (`restore`, `restore_parts`). Saves are synchronous so a checkpoint is
+    complete on disk when `save` returns, before the next step donates the buffers. Existing
+    checkpoints are never overwritten or deleted except by the retention policy.
     """
 
     def __init__(
@@ -131,14 +140,13 @@ class Checkpointer:
             enable_async_checkpointing=False,
             create=True,
         )
+        # Named handlers let a fresh process read a checkpoint's metadata before restoring.
+        handlers: dict[str, Any] = {
+            name: ocp.StandardCheckpointHandler() for name in (*STATE_PARTS, LEGACY_STATE_ITEM)
+        }
+        handlers["data"] = grain.checkpoint.CheckpointHandler()
         self._manager = ocp.CheckpointManager(
-            self.directory,
-            options=options,
-            # Named handlers let a fresh process read a checkpoint's metadata before restoring.
-            item_handlers={
-                "state": ocp.StandardCheckpointHandler(),
-                "data": grain.checkpoint.CheckpointHandler(),
-            },
+            self.directory, options=options, item_handlers=handlers
         )
 
     @classmethod
@@ -162,32 +170,51 @@ class Checkpointer:
     def save(
         self,
         step: int,
-        state: Any,
+        state: Mapping[str, Any],
         metrics: Mapping[str, Any] | None = None,
         data_iter: grain.DatasetIterator | None = None,
     ) -> None:
-        """Writes checkpoint `step`; refuses to overwrite an existing one."""
+        """Writes checkpoint `step` of `state` ({"model", "opt"[, "ema"]}, one item each);
+        refuses to overwrite an existing one."""
         if step in self._manager.all_steps():
             raise ValueError(
                 f"checkpoint {step} already exists in {self.directory}; refusing to overwrite it"
             )
-        items: dict[str, Any] = {"state": ocp.args.StandardSave(state)}
+        unknown = sorted(set(state) - set(STATE_PARTS))
+        if unknown or "model" not in state:
+            raise ValueError(
+                f"a training state has the parts {STATE_PARTS} (with 'model'); got {sorted(state)}"
+            )
+        items: dict[str, Any] = {k: ocp.args.StandardSave(v) for k, v in state.items()}
         if data_iter is not None:
             items["data"] = grain.checkpoint.CheckpointSave(data_iter)
         if metrics is not None:
             metrics = {k: float(v) for k, v in metrics.items()}
         self._manager.save(step, args=ocp.args.Composite(**items), metrics=metrics, force=True)
 
+    def _step(self, step: int | None) -> int:
+        steps = self.all_steps()
+        if step is None:
+            if not steps:
+                raise FileNotFoundError(f"no checkpoint found in {self.directory}")
+            return steps[-1]
+        if step not in steps:
+            raise FileNotFoundError(
+                f"checkpoint {step} not found in {self.directory}; available steps: {steps}"
+            )
+        return step
+
     def restore(
         self,
-        abstract_state: Any,
+        abstract_state: Mapping[str, Any],
         step: int | None = None,
         data_iter: grain.DatasetIterator | None = None,
     ) -> tuple[int, Any]:
         """Restores checkpoint `step` (default: the latest) into the structure of `abstract_state`.
 
         Args:
-          abstract_state: pytree of `jax.ShapeDtypeStruct` (e.g. from `nnx.eval_shape`) or arrays.
+          abstract_state: {part: pytree of `jax.ShapeDtypeStruct` (e.g. from `nnx.eval_shape`) or
+            arrays}, the whole training state.
           step: which checkpoint; None = the latest.
           data_iter: grain iterator whose position is restored in place, when given.
 
@@ -198,28 +225,79 @@ class Checkpointer:
           FileNotFoundError: there is no checkpoint (or not that step).
           ValueError: the checkpoint is corrupt or belongs to a different model/configuration.
         """
-        steps = self.all_steps()
-        if step is None:
-            if not steps:
-                raise FileNotFoundError(f"no checkpoint found in {self.directory}")
-            step = steps[-1]
-        elif step not in steps:
-            raise FileNotFoundError(
-                f"checkpoint {step} not found in {self.directory}; available steps: {steps}"
-            )
-        items: dict[str, Any] = {"state": ocp.args.StandardRestore(abstract_state)}
+        step = self._step(step)
+        return step, self._restore(step, dict(abstract_state), data_iter, whole=True)
+
+    def restore_parts(
+        self,
+        abstract_parts: Mapping[str, Any],
+        step: int | None = None,
+        whole_state: Callable[[], Mapping[str, Any]] | None = None,
+    ) -> tuple[int, dict[str, Any]]:
+        """Restores only the parts `abstract_parts` names (e.g. {"model": ...}) of checkpoint
+        `step`: what inference needs, without an optimizer state.
+
+        A checkpoint of the earlier layout holds the whole state in one item, which restores
+        only whole: `whole_state()` then gives its abstract structure (it is not called for a
+        checkpoint of parts).
+
+        Raises:
+          FileNotFoundError: no checkpoint (or not that step).
+          ValueError: a part the checkpoint lacks, a mismatch, or damaged files.
+        """
+        step = self._step(step)
+        if self._legacy(step):
+            if whole_state is None:
+                raise ValueError(
+                    f"checkpoint {step} in {self.directory} holds the whole training state in "
+                    "one item; restoring a part of it needs the whole state's structure"
+                )
+            state = self._restore(step, dict(whole_state()), None, whole=True)
+            return step, {name: state[name] for name in abstract_parts}
+        return step, self._restore(step, dict(abstract_parts), None, whole=False)
+
+    def _legacy(self, step: int) -> bool:
+        try:
+            saved = self._manager.item_metadata(step)
+        except Exception:  # damaged metadata: the restore reports it in one line
+            return False
+        return saved.get(LEGACY_STATE_ITEM) is not None and saved.get("model") is None
+
+    def _restore(
+        self,
+        step: int,
+        abstract: dict[str, Any],
+        data_iter: grain.DatasetIterator | None,
+        whole: bool,
+    ) -> dict[str, Any]:
+        where = f"checkpoint {step} in {self.directory}"
+        legacy = self._legacy(step)
+        if legacy:
+            items: dict[str, Any] = {LEGACY_STATE_ITEM: ocp.args.StandardRestore(abstract)}
+        else:
+            items = {k: ocp.args.StandardRestore(v) for k, v in abstract.items()}
         if data_iter is not None:
             items["data"] = grain.checkpoint.CheckpointRestore(data_iter)
-        where = f"checkpoint {step} in {self.directory}"
         failure = None
         try:
             # Refuse a mismatched checkpoint from its metadata, before any array read starts:
             # orbax abandons the in-flight reads of a failed restore to a closed event loop.
-            saved = self._manager.item_metadata(step)["state"]
+            saved = self._manager.item_metadata(step)
         except Exception as err:  # orbax/tensorstore raise many types for damaged files
             failure = err
         else:
-            _check_compatible(abstract_state, saved, where)
+            if legacy:
+                saved_state = saved[LEGACY_STATE_ITEM]
+            else:
+                parts = [k for k in STATE_PARTS if saved.get(k) is not None]
+                if set(abstract) - set(parts) or (whole and set(parts) != set(abstract)):
+                    raise ValueError(
+                        f"{where} holds the parts {parts}, the model asks for "
+                        f"{sorted(abstract)}; it was written by another configuration (start a "
+                        "new run or use the run's own config)"
+                    )
+                saved_state = {k: saved[k] for k in abstract}
+            _check_compatible(abstract, saved_state, where)
             try:
                 restored = self._manager.restore(step, args=ocp.args.Composite(**items))
             except Exception as err:
@@ -235,7 +313,9 @@ class Checkpointer:
                 "different model configuration; it was left untouched. Start a new run "
                 "(--run DIR) or resume from the matching configuration."
             )
-        return step, restored["state"]
+        if legacy:
+            return dict(restored[LEGACY_STATE_ITEM])
+        return {k: restored[k] for k in abstract}
 
     def close(self) -> None:
         self._manager.wait_until_finished()

@@ -22,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import jax
@@ -34,7 +33,7 @@ from flax import nnx
 from nmjax import losses, run_folder
 from nmjax.config import DYN_INPUTS, DynTrainConfig, resolve_epochs
 from nmjax.models.dynamics import Dynamics
-from nmjax.train import checkpoints, dyn_inputs, loop, optim, parallel
+from nmjax.train import checkpoints, dyn_inputs, loop, optim, parallel, trained
 
 # --- the crops each step draws -----------------------------------------------------------------
 
@@ -183,7 +182,7 @@ def build(
     cfg: DynTrainConfig, parents: tuple[int, ...], order: tuple[int, ...]
 ) -> tuple[nnx.GraphDef, dict[str, Any]]:
     """The model of `cfg` and its optimizer state: (graphdef, {"model": ..., "opt": ...})."""
-    model = Dynamics(cfg.model, parents, order, rngs=nnx.Rngs(cfg.seed))
+    model = trained.build_dynamics(cfg, parents, order)
     return optim.init_state(model, StepSettings.of(cfg).optimizer)
 
 
@@ -194,7 +193,7 @@ INIT_FIELDS = ("model.model", "model.latent", "model.hidden", "model.mlp")
 
 def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
     """The weights a fine-tuning run of `cfg` on a skeleton of `num_keypoints` keypoints starts
-    from: the trained model of the phase-2 run `cfg.init_from` (`restore_model`).
+    from: the trained model of the phase-2 run `cfg.init_from` (`trained.restore_model`).
 
     Raises:
       FileNotFoundError, ValueError: one line; the source is no phase-2 run with a checkpoint,
@@ -210,24 +209,7 @@ def initial_weights(cfg: DynTrainConfig, num_keypoints: int) -> nnx.State:
             f"skeleton of {source.skel_run}), the phase-1 run {cfg.skel_run} has K="
             f"{num_keypoints}; train on a phase-1 run of K={tree.num_keypoints} (--skel-run)"
         )
-    return nnx.state(restore_model(cfg.init_from, source, tree.parents, tree.order))
-
-
-def restore_model(
-    run: str | Path,
-    cfg: DynTrainConfig,
-    parents: tuple[int, ...],
-    order: tuple[int, ...],
-    step: int | None = None,
-) -> Dynamics:
-    """The model of checkpoint `step` (default: the latest) of the phase-2 run `run`, whose
-    configuration is `cfg` and whose skeleton is (`parents`, `order`). `nmjax.runs.
-    restore_dynamics` is the run-folder API over it (it reads both from the folder); phase 2
-    keeps no best checkpoint (its loop ranks none), so the latest is its trained model."""
-    graphdef, abstract = nnx.eval_shape(lambda: build(cfg, parents, order))
-    with checkpoints.Checkpointer.of_run(run, cfg.loop) as ckpt:
-        _, state = ckpt.restore(abstract, step=step)
-    return nnx.merge(graphdef, state["model"])
+    return nnx.state(trained.restore_model(cfg.init_from, source, tree.parents, tree.order))
 
 
 # --- validation -------------------------------------------------------------------------------

@@ -31,7 +31,7 @@ from nmjax.config import DynTrainConfig
 from nmjax.data.datasets import crop_sequence, crop_span, load_sequences, pad_with_last
 from nmjax.data.normalize import normalize_sequence
 from nmjax.data.voxelize import voxelize
-from nmjax.train.skel import Detector
+from nmjax.train.trained import Detector
 
 MAX_VAL_CROPS = 64
 CLIP_CHUNK = 8  # detector batches voxelised at once by `detect_clips` (bounds host memory)

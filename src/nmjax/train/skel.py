@@ -4,11 +4,11 @@ One module-level jit-compiled step (`train_step`) over the state {"model", "opt"
 settings static, the state donated), driven by `loop.train_loop`: periodic validation on the
 test split (loss terms, SC-score Eq. 21 when joints exist, a picture), orbax checkpoints (latest
 few + best validation loss, with the grain iterator position, so a resume continues exactly),
-metrics to JSONL and TensorBoard; `train_skeleton` is the entry. At the end the run folder gets
-affinity.npy and keypoint_stats.npz of the best checkpoint; `nmjax.runs.finish_phase1` adds
-skeleton.json and keypoints_{train,test}.npz of the same detector (contract C10,
-`nmjax.run_folder`). `Detector` is a trained detector restored for inference, with its compiled
-detect / reconstruct / decode functions.
+metrics to JSONL and TensorBoard; `train_skeleton` is the entry, and it leaves a complete
+phase-1 run: affinity.npy and keypoint_stats.npz of the best checkpoint, then skeleton.json and
+keypoints_{train,test}.npz of the same detector (`trained.complete_phase1`; contract C10,
+`nmjax.run_folder`). The trained detector restored for inference (`trained.Detector`) is
+`nmjax.train.trained`'s.
 """
 
 from __future__ import annotations
@@ -28,12 +28,11 @@ from flax import nnx
 from nmjax import keypoints as kp_lib
 from nmjax import losses, metrics, run_folder
 from nmjax.config import LossWeights, SkelTrainConfig, resolve_epochs
-from nmjax.data.datasets import pad_with_last
 from nmjax.data.pipeline import Augmentation
 from nmjax.models.detector import KeypointDetector, check_detector_config
-from nmjax.train import checkpoints, loop, optim, parallel
+from nmjax.train import checkpoints, loop, optim, parallel, trained
 
-BEST_METRIC = "val/loss"
+BEST_METRIC = trained.BEST_METRIC
 NonFiniteLossError = loop.NonFiniteLossError
 
 
@@ -78,8 +77,7 @@ class StepSettings:
 
 def build(cfg: SkelTrainConfig, seed: int | None = None) -> tuple[nnx.GraphDef, dict[str, Any]]:
     """(graphdef, {"model", "opt"}) of the detector and its optimizer, initialised from `seed`."""
-    model = KeypointDetector(cfg.model, rngs=nnx.Rngs(cfg.seed if seed is None else seed))
-    return optim.init_state(model, StepSettings.of(cfg).optimizer)
+    return optim.init_state(trained.build_detector(cfg, seed), StepSettings.of(cfg).optimizer)
 
 
 # The fields the detector's weights' shapes follow: a run that starts from another run's weights
@@ -104,108 +102,8 @@ def initial_weights(cfg: SkelTrainConfig) -> nnx.State:
         or its network differs from `cfg`'s (`checkpoints.init_source_config`).
     """
     checkpoints.init_source_config(cfg, INIT_FIELDS, "phase-1")
-    model, _ = restore_detector(cfg.init_from)
+    model, _ = trained.restore_detector(cfg.init_from)
     return nnx.state(model)
-
-
-def restore_detector(
-    run: str | Path, step: int | None = None
-) -> tuple[KeypointDetector, SkelTrainConfig]:
-    """The trained detector of a phase-1 run and its configuration: checkpoint `step`, else the
-    best by validation loss, else the latest (`model_of`: the weight average when the run keeps
-    one). `Detector.load` wraps it for inference."""
-    run = Path(run)
-    cfg = run_folder.load_config(run, SkelTrainConfig)
-    # Built concretely: the detector's initialisation does host-side work eval_shape cannot trace.
-    graphdef, state = build(cfg)
-    abstract = checkpoints.abstract_state(state)
-    ckpt = checkpoints.Checkpointer.of_run(run, cfg.loop, BEST_METRIC)
-    try:
-        if step is None:
-            step = ckpt.best_step() or ckpt.latest_step()
-        _, state = ckpt.restore(abstract, step=step)
-    finally:
-        ckpt.close()
-    return model_of(graphdef, state, cfg), cfg
-
-
-@dataclasses.dataclass
-class Detector:
-    """A restored phase-1 detector with compiled detect / reconstruct / decode functions.
-
-    The functions are module-level jits keyed by the (static) graphdef, so every Detector of one
-    configuration shares their compilations.
-    """
-
-    run: Path
-    cfg: SkelTrainConfig
-    graphdef: Any
-    state: Any
-
-    @classmethod
-    def load(cls, run: str | Path, step: int | None = None) -> Detector:
-        """The detector of checkpoint `step`, by default the run's best by validation loss
-        (`restore_detector`): the one the release keeps, whose affinity and keypoint statistics
-        the trainer writes (`write_artifacts`) and whose keypoints `nmjax.runs.finish_phase1`
-        exports, so the skeleton, the exported keypoints and every later reader agree."""
-        model, cfg = restore_detector(run, step)
-        return cls.of(model, cfg, run)
-
-    @classmethod
-    def of(cls, model: KeypointDetector, cfg: SkelTrainConfig, run: str | Path) -> Detector:
-        graphdef, state = nnx.split(model)
-        # A trained state may be replicated over several hosts; inference here is local.
-        return cls(Path(run), cfg, graphdef, parallel.to_local(state))
-
-    def _batches(self, voxels: np.ndarray, fn) -> list[Any]:
-        """`fn(graphdef, state, batch)` on `voxels` in batches of the training batch size, the
-        last padded with the last crop, so one compiled shape serves every call."""
-        b = self.cfg.data.batch_size
-        padded = pad_with_last(voxels, -(-len(voxels) // b) * b)
-        return [
-            jax.device_get(fn(self.graphdef, self.state, jnp.asarray(padded[i : i + b])))
-            for i in range(0, len(padded), b)
-        ]
-
-    def run_batches(self, voxels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints (C, T, K, 4) and reconstructions (C, T, G, G, G) of crops (C, T, G, G, G)."""
-        outs = self._batches(voxels, _forward)
-        n = len(voxels)
-        return (
-            np.concatenate([kp for kp, _ in outs])[:n],
-            np.concatenate([recon for _, recon in outs])[:n],
-        )
-
-    def keypoints(self, voxels: np.ndarray) -> np.ndarray:
-        """Keypoints (C, T, K, 4) of crops (C, T, G, G, G), without the reconstruction."""
-        return np.concatenate(self._batches(voxels, detect_batch))[: len(voxels)]
-
-    def decode(self, keypoints: np.ndarray, first_voxels: np.ndarray) -> np.ndarray:
-        """Eq. 7 for given keypoints: (B, F, K, 4), first frame (B, G, G, G) -> (B, F, G, G, G)."""
-        return np.asarray(
-            _decode(self.graphdef, self.state, jnp.asarray(keypoints), jnp.asarray(first_voxels))
-        )
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _forward(graphdef, state, voxels):
-    out = nnx.merge(graphdef, state)(voxels)
-    return out["keypoints"], out["recon"]
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def detect_batch(graphdef, state, voxels):
-    """Keypoints (B, T, K, 4) of crops (B, T, G, G, G): the detector's forward without the
-    decoder, compiled once per shape (what `Detector.keypoints` and `nmjax bench --phase detect`
-    run)."""
-    return nnx.merge(graphdef, state).detect(voxels)[1]
-
-
-@functools.partial(jax.jit, static_argnames="graphdef")
-def _decode(graphdef, state, keypoints, first_voxels):
-    model = nnx.merge(graphdef, state)
-    features = model.features(first_voxels)  # c_1 of frame ts: f_feat sees one frame
-    return model.decode(keypoints, features, first_voxels)
 
 
 def loss_fn(
@@ -367,8 +265,10 @@ def train_skeleton(
       progress: show a tqdm bar.
       step_hook: test hook `(step, state) -> state` applied before each step (step = steps
         done so far).
-      finalize: write affinity.npy and keypoint_stats.npz of the best checkpoint at the end
-        (`write_artifacts`); `nmjax.runs.finish_phase1` then adds the skeleton and keypoints.
+      finalize: complete the run folder at the end from the best checkpoint: affinity.npy and
+        keypoint_stats.npz (`write_artifacts`), then skeleton.json and
+        keypoints_{train,test}.npz (`trained.complete_phase1`); False leaves the checkpoints
+        and logs only (tests of the loop itself).
 
     Raises:
       NonFiniteLossError: the loss became NaN/inf; the message gives the step, and the last good
@@ -425,6 +325,7 @@ def train_skeleton(
     )
     if finalize:
         write_artifacts(run, graphdef, best_state(run, end.state, cfg), val_batches, cfg)
+        trained.complete_phase1(run)
     return loop.TrainSummary.of(run, end, cfg.loop)
 
 

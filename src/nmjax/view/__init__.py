@@ -17,7 +17,7 @@ Four kinds of input, told apart by what they hold:
   every key of its animation by glTF's own rules (`nmjax.export.gltf.read`), so a file can be
   checked before it is sent on.
 
-Everything drawn comes from the run-folder readers (`nmjax.runs`) and the task functions
+Everything drawn comes from the run-folder readers (`nmjax.train.trained`) and the task functions
 (`nmjax.tasks`); nothing here runs a model of its own. viser is imported only when a viewer
 starts (`pip install -e '.[view]'`), so the rest of nmjax never needs it.
 

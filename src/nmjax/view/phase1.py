@@ -58,17 +58,18 @@ class Phase1Data:
 
     def frames(self, name: str) -> tuple[np.ndarray | None, np.ndarray | None]:
         """(points (S, N, 3), joints (S, J, 3)) of sequence `name` in the keypoints' normalised
-        coordinates (`runs.sequence_points`); None where the data is missing.
+        coordinates (`trained.sequence_points`); None where the data is missing.
 
         Raises:
           ValueError: the keypoints were exported from a different number of frames.
         """
-        from nmjax import run_folder, runs
+        from nmjax import run_folder
+        from nmjax.train import trained
 
         seq = None if self.sequences is None else self.sequences.get(name)
         if seq is None:
             return None, None
-        points, joints = runs.sequence_points(seq, self.sample_rate)
+        points, joints = trained.sequence_points(seq, self.sample_rate)
         if len(points) != len(self.keypoints[name]):
             raise ValueError(
                 f"{run_folder.keypoints_file(self.run, self.split)}[{name!r}] has "

@@ -90,13 +90,14 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
     """A phase-2 ("nm") run's view data: its models, phase-1 keypoints and skeleton.
 
     Raises:
-      FileNotFoundError, ValueError: as `runs.phase2_runs`, `runs.load_phase2` and the phase-1
+      FileNotFoundError, ValueError: as `trained.phase2_runs`, `trained.load_phase2` and the phase-1
         readers (a missing export names the command that writes it).
     """
     from flax import nnx
 
-    from nmjax import run_folder, runs
+    from nmjax import run_folder
     from nmjax.config import DynTrainConfig, SkelTrainConfig
+    from nmjax.train import trained
 
     run = Path(run)
     model_kind = run_folder.load_config(run, DynTrainConfig).model.model
@@ -105,12 +106,12 @@ def read_phase2(run: str | Path, split: str = "test") -> Phase2Data:
             f"--run {run} is a '{model_kind}' run; view the Neural Marionette ('nm') run of the "
             "same phase-1 run instead (its positional VRNN baseline is found beside it)"
         )
-    _, skel_run, vrnn_run = runs.phase2_runs(run, None)
-    model, _, _ = runs.load_phase2(run)
+    _, skel_run, vrnn_run = trained.phase2_runs(run, None)
+    model, _, _ = trained.load_phase2(run)
     keypoints = run_folder.load_trajectories(skel_run, split)
     skeleton = run_folder.read_skeleton(skel_run)
     parents, keep = run_folder.pruned_skeleton(skel_run)
-    vrnn = None if vrnn_run is None else nnx.split(runs.restore_dynamics(vrnn_run))
+    vrnn = None if vrnn_run is None else nnx.split(trained.restore_dynamics(vrnn_run))
     return Phase2Data(
         run=run,
         skel_run=skel_run,

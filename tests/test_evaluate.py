@@ -100,7 +100,8 @@ def test_lerp_of_a_linear_motion_scores_zero_and_a_curved_one_does_not(runs, mon
     interp = Interpolators(nm=None, vrnn=None, trajectories=1)
     for traj, zero in ((linear, True), (curved, False)):
         monkeypatch.setattr(
-            "nmjax.train.trained.sequence_voxels", lambda *a, traj=traj: voxelize(traj[..., :3], grid)
+            "nmjax.train.trained.sequence_voxels",
+            lambda *a, traj=traj: voxelize(traj[..., :3], grid),
         )
         tables = evaluate.evaluate_interpolation(
             detector, interp, {seq.name: traj}, rates=(3, 5), methods=("Lerp",)

@@ -110,14 +110,15 @@ def tree_edit_distance(parents_a, parents_b, kept_a=None, kept_b=None) -> int:
     The least number of edits turning tree A into tree B, with unit costs: deleting a node (its
     children take its place under its parent) costs 1, inserting one costs 1, and renaming costs
     0 because the nodes carry no labels (nothing says which discovered node is which true
-    joint). Moving a leaf to another parent therefore costs 2 (one delete, one insert) unless
-    the result has the same shape; trees of N_A and N_B nodes are between |N_A - N_B| and
-    N_A + N_B - 2 apart (the roots always match).
+    joint). Moving a leaf to another parent therefore costs 2 (one delete, one insert), or 0
+    when the result has the same shape; trees of N_A and N_B nodes are between |N_A - N_B|
+    (every extra node is deleted or inserted) and N_A + N_B - 2 (all but the roots deleted and
+    inserted, the roots mapped onto each other for free) apart.
 
     APTED computes the edit distance of ordered trees; the unordered one is NP-hard. The children
     of every node are put in a canonical order (sorted by the shape of their subtrees) so that
     the value depends only on the shapes, never on the node numbering: an upper bound on the
-    unordered distance, equal to it when the two trees are the same shape.
+    unordered distance (0 exactly when the two trees have the same shape).
 
     Args:
       parents_a, parents_b: (K_a,), (K_b,) parent index of every node; the root is its own
@@ -351,12 +352,11 @@ def skeleton_chamfers(
       {"cd_j2j", "cd_j2b", "cd_b2b"} each (...,), the last two only with `true_parents`.
     """
     x, y = unit_box(joints, body), unit_box(true_joints, body)
-    out = {"cd_j2j": cd_j2j(x, y, kept) * SKELETON_CD_SCALE}
+    out = {"cd_j2j": cd_j2j(x, y, kept)}
     if true_parents is not None:
-        out["cd_j2b"] = cd_j2b(x, parents, y, true_parents, kept) * SKELETON_CD_SCALE
-        out["cd_b2b"] = cd_b2b(x, parents, y, true_parents, kept, None, samples)
-        out["cd_b2b"] = out["cd_b2b"] * SKELETON_CD_SCALE
-    return out
+        out["cd_j2b"] = cd_j2b(x, parents, y, true_parents, kept)
+        out["cd_b2b"] = cd_b2b(x, parents, y, true_parents, kept, samples=samples)
+    return {key: value * SKELETON_CD_SCALE for key, value in out.items()}
 
 
 # --- the rig's fit error -----------------------------------------------------------------------

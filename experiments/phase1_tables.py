@@ -7,7 +7,10 @@ Writes beside the rows file, each `.md` and `.json` stamped by `nmjax.provenance
 commit; every table row names the commit that trained and scored it):
 
 - table1_sc:        SC (published and fixed-node definitions, std over joints) beside every
-                    skeleton measure, one row per (body, seed) of the preset (Table 1);
+                    skeleton measure and the field's scores (tree edit distance from the row's
+                    stored tree; CD-J2J / J2B / B2B and the rig's fit error where the row
+                    holds them, "not stored" where it does not), one row per (body, seed) of the
+                    preset (Table 1);
 - table2_tracking:  tracking CD x1e4 with its 95% CI per (body, seed), and the supervised
                     baseline against the preset on the comparison bodies (Table 2);
 - table9_10_no_vol: the preset against w_vol = 0 (Tables 9-10, appendix C.1);
@@ -30,7 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from nmjax import provenance
+from nmjax import metrics, provenance
+from nmjax.data.bodies import get_body
 from nmjax.evaluate import fmt
 
 BODIES = ("synth-arm", "synth-hand", "synth-human", "synth-quadruped")
@@ -73,6 +77,18 @@ DEFINITIONS = {
     "distinct / kept": "kept nodes that are some joint's nearest node / kept nodes",
     "CD": "4D-tracking Chamfer distance x1e4 between the test voxels and their reconstruction, "
     "95% CI over test sequences",
+    "TED": "tree edit distance between the row's kept tree (its stored `pruned_parents` over its "
+    "`keep`) and the body's true tree (`nmjax.data.bodies`): rooted, unlabelled, APTED with "
+    "insert 1, delete 1, rename 0 (`nmjax.metrics.tree_edit_distance`), computed here",
+    "CD-J2J / J2B / B2B": "RigNet's joint-to-joint, joint-to-bone and bone-to-bone Chamfer "
+    "distances x1e-2 between the kept nodes and the true joints, each test frame's body box "
+    "scaled to [-0.5, 0.5]^3 (`nmjax.metrics.skeleton_chamfers`)",
+    "rig fit": "the fit error x1e4 of the rig `nmjax export` builds (each test crop's frame-0 "
+    "points skinned by Algorithm 2 and the kept nodes' swing rotations, against every frame's "
+    "points; `nmjax.metrics.rig_fit_error`)",
+    "not stored": "not stored in the row: the score needs every test crop's keypoints, points "
+    "and joints and the rig built from them, which a row does not keep; it is scored when the "
+    "row is made again (`paper_phase1.py`, `nmjax.evaluate.evaluate_phase1`)",
 }
 
 
@@ -112,6 +128,28 @@ def skeleton_cells(s: dict[str, Any]) -> str:
         f"| {_num(s.get('bone_recall'), 2)} "
         f"| {s.get('distinct_nodes', 'n/a')} / {s.get('skeleton_kept_nodes', 'n/a')} |"
     )
+
+
+FIELD_HEAD = ("| TED | CD-J2J / J2B / B2B | rig fit |", "|---|---|---|")
+NOT_STORED = "not stored"
+
+
+def tree_edit_distance(row: dict[str, Any]) -> int:
+    """The tree edit distance of the row's kept tree to its body's true tree."""
+    true_parents = np.asarray(get_body(row["body"]).parents)
+    return metrics.tree_edit_distance(row["pruned_parents"], true_parents, row["keep"])
+
+
+def field_cells(row: dict[str, Any]) -> str:
+    """The field's scores of a row as table cells: the tree edit distance from its stored tree,
+    the others from its scores, `NOT_STORED` where the row lacks them."""
+    s = row["scores"]
+    if all(k in s for k in ("cd_j2j", "cd_j2b", "cd_b2b")):
+        chamfers = " / ".join(fmt(s[k]) for k in ("cd_j2j", "cd_j2b", "cd_b2b"))
+    else:
+        chamfers = NOT_STORED
+    fit = fmt(s["rig_fit_cd"], s.get("rig_fit_cd_ci95")) if "rig_fit_cd" in s else NOT_STORED
+    return f"| {tree_edit_distance(row)} | {chamfers} | {fit} |"
 
 
 def _sc(s: dict[str, Any], key: str = "sc") -> str:
@@ -160,15 +198,20 @@ def table1(rows, stamp, out: Path, seeds: list[int]) -> None:
             "edge (2h)",
             "bone recall",
             "distinct / kept",
+            "TED",
+            "CD-J2J / J2B / B2B",
+            "rig fit",
+            "not stored",
         ),
-        "| body | seed | SC | SC fixed " + SKELETON_HEAD[0] + " commit |",
-        "|---|---|---|---" + SKELETON_HEAD[1] + "---|",
+        "| body | seed | SC | SC fixed " + SKELETON_HEAD[0] + FIELD_HEAD[0][1:] + " commit |",
+        "|---|---|---|---" + SKELETON_HEAD[1] + FIELD_HEAD[1][1:] + "---|",
     ]
     for r in preset:
         s = r["scores"]
         lines.append(
             f"| {_body(r['body'])} | {r['seed']} | {_sc(s)} | {_sc(s, 'sc_fixed_nodes')} "
             + skeleton_cells(s)
+            + field_cells(r)[1:]
             + f" {_commit(r)} |"
         )
     lines += [
@@ -195,7 +238,14 @@ def table1(rows, stamp, out: Path, seeds: list[int]) -> None:
 def _summary(rows) -> list[dict[str, Any]]:
     """The rows without their pictures and configurations, for the tables' JSON files."""
     keep = ("body", "seed", "variant", "steps", "train_minutes", "scores", "pruned_parents")
-    return [{**{k: r[k] for k in keep}, "commit": r["provenance"].get("commit")} for r in rows]
+    return [
+        {
+            **{k: r[k] for k in keep},
+            "tree_edit_distance": tree_edit_distance(r),
+            "commit": r["provenance"].get("commit"),
+        }
+        for r in rows
+    ]
 
 
 def table2(rows, stamp, out: Path, seeds: list[int]) -> None:
@@ -261,10 +311,14 @@ def comparison(rows, stamp, out: Path, variant: str, name: str, title: str, pape
     lines = [
         f"# {title}\n",
         _steps_note([r for *_, r in pairs]) if pairs else "",
-        _definitions("SC", "CD", "joint d", "edge (2h)"),
-        "| body | model | SC | CD (95% CI) " + SKELETON_HEAD[0] + " parents after pruning | "
-        "commit |",
-        "|---|---|---|---" + SKELETON_HEAD[1] + "---|---|",
+        _definitions(
+            "SC", "CD", "joint d", "edge (2h)", "TED", "CD-J2J / J2B / B2B", "rig fit", "not stored"
+        ),
+        "| body | model | SC | CD (95% CI) "
+        + SKELETON_HEAD[0]
+        + FIELD_HEAD[0][1:]
+        + " parents after pruning | commit |",
+        "|---|---|---|---" + SKELETON_HEAD[1] + FIELD_HEAD[1][1:] + "---|---|",
     ]
     for b, v, r in pairs:
         s = r["scores"]
@@ -272,6 +326,7 @@ def comparison(rows, stamp, out: Path, variant: str, name: str, title: str, pape
         lines.append(
             f"| {_body(b)} | {LABEL[v]} | {_sc(s)} | {_cd(s)} "
             + skeleton_cells(s)
+            + field_cells(r)[1:]
             + f" `{kept}` | {_commit(r)} |"
         )
     lines += [

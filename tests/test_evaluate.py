@@ -25,6 +25,7 @@ SKELETON_KEYS = (
     "bone_recall",
     "distinct_nodes",
 )
+FIELD_KEYS = ("cd_j2j", "cd_j2b", "cd_b2b", "rig_fit_cd", "rig_fit_cd_capture")
 
 
 def test_confidence_interval_is_the_student_t_half_width():
@@ -137,6 +138,12 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
         assert key in p1, key
     assert 0.0 < p1["joint_distance"]["mean"] < 2 * np.sqrt(3) and p1["joint_distance"]["n"] == 1
     assert 1 <= p1["distinct_nodes"] <= p1["skeleton_kept_nodes"] == K
+    # The field's scores: the six kept nodes' tree against synth-arm's 13-joint tree, the
+    # skeleton chamfers and the rig's fit error, each defined in the stamp.
+    assert isinstance(p1["tree_edit_distance"], int) and p1["tree_edit_distance"] >= 13 - K
+    for key in FIELD_KEYS:
+        assert np.isfinite(p1[key]["mean"]) and p1[key]["mean"] >= 0 and p1[key]["n"] == 1, key
+        assert key in stamp["metrics"], key
     assert set(results["interpolation"]) == {"Ours", "VRNN", "Lerp", "Slerp"}
     for by_rate in results["interpolation"].values():
         assert all(np.isfinite(by_rate[r]["mean"]) and by_rate[r]["n"] == 1 for r in ("3", "5"))
@@ -150,6 +157,8 @@ def test_evaluate_command_writes_all_tables(runs, tmp_path):
         "fixed node set",
         "Skeleton against the ground truth",
         "bone recall",
+        "## The field's scores",
+        "CD-B2B x1e-2",
         "## Provenance",
     ):
         assert row in tables
@@ -196,8 +205,32 @@ def test_evaluate_of_a_phase1_run_takes_the_kept_nodes_stored_in_its_skeleton(
     chain = float(metrics.bone_length_variation(keypoints[..., :3, :], np.array([0, 0, 1]), 0.0))
     assert p1["bone_length_variation"]["mean"] == pytest.approx(bones, rel=1e-6)
     assert bones == pytest.approx(chain, rel=1e-6)
+    # The kept chain of 3 nodes against synth-arm's 13-joint tree (a chain 0-...-8 that forks
+    # into 9-10 and 11-12): deleting the 10 nodes it lacks leaves a chain of 3, and no script
+    # with fewer edits removes 10 nodes: TED = 10.
+    assert p1["tree_edit_distance"] == 10
+    # CD-J2J over the stored kept nodes: the same as the three kept keypoints on their own.
+    crops = next(evaluate.phase1_crops(det, max_crops=1))
+    kept_xyz = crops["keypoints"][..., :3][..., keep, :]
+    own = metrics.cd_j2j(
+        metrics.unit_box(kept_xyz, crops["points"]), metrics.unit_box(joints, crops["points"])
+    )
+    expected = float(np.mean(own)) * metrics.SKELETON_CD_SCALE
+    assert p1["cd_j2j"]["per_sequence"] == {name: pytest.approx(expected, rel=1e-5)}
+    # The fit error of the rig `nmjax export` builds on the three kept nodes.
+    (fit,) = [
+        evaluate.crop_fit_error(kp, pts, float(s), (parents, keep), 30.0)
+        for kp, pts, s in zip(crops["keypoints"], crops["points"], crops["box_scale"], strict=True)
+    ]
+    assert p1["rig_fit_cd"]["mean"] == pytest.approx(fit["cd"], rel=1e-5)
+    assert p1["rig_fit_cd_capture"]["mean"] == pytest.approx(fit["cd_capture"], rel=1e-5)
+    scores = evaluate.phase1_scores(p1)
+    assert scores["tree_edit_distance"] == 10
+    for key in FIELD_KEYS:
+        assert scores[key] == p1[key]["mean"] and f"{key}_ci95" in scores, key
     tables = (out / "tables.md").read_text()
     assert "## Skeleton against the ground truth" in tables and " / 3 |" in tables
+    assert "| Ours | 10 |" in tables
     # A skeleton.json without the kept nodes is refused with the command that rewrites it.
     del stored["keep"]
     path.write_text(json.dumps(stored))
@@ -232,6 +265,62 @@ def test_skeleton_against_truth_without_a_true_tree_and_its_table():
     assert lines[3].startswith("| Full | 0.5 | n/a | 0.00866 (0.11) |")
     assert lines[3].endswith("| 1 | 1 | 1 | 3 / 3 |")
     assert evaluate.skeleton_truth_table({"Ours": {"sc": {"score": 0.5}}}) == []
+
+
+def test_the_rig_reproduces_a_capture_that_is_its_own_skinning_and_not_another_one():
+    """`crop_fit_error`: the rig `nmjax export` builds from keypoints, skinned by Algorithm 2 on
+    frame 0, fits frames that are exactly that skinning (0) and not a capture that moves
+    otherwise."""
+    rng = np.random.default_rng(0)
+    parents, keep = np.array([0, 0, 1, 2, 1]), np.array([True, True, True, False, True])
+    rest = np.float32([[0, 0, 0], [0.3, 0, 0], [0.6, 0, 0], [0.8, 0, 0], [0.3, 0.3, 0]])
+    frames = 5
+    angle = np.linspace(0, 0.6, frames)
+    keypoints = np.ones((frames, 5, 4), np.float32)
+    keypoints[..., :3] = rest
+    # Joint 2 (and the pruned 3 beyond it) swings about z around joint 1; joint 4 is still.
+    turn = np.stack([np.cos(angle), np.sin(angle), np.zeros(frames)], -1)
+    keypoints[:, 2, :3] = rest[1] + 0.3 * turn
+    keypoints[:, 3, :3] = rest[1] + 0.5 * turn
+    surface = rng.uniform([-0.1, -0.1, -0.1], [0.7, 0.4, 0.1], (300, 3)).astype(np.float32)
+    rig, weights = evaluate.crop_rig(keypoints, surface, (parents, keep), 30.0)
+    np.testing.assert_array_equal(rig.joints, [0, 1, 2, 4])  # the kept nodes, parents first
+    assert weights.shape == (300, 4) and np.allclose(weights.sum(1), 1.0, atol=1e-6)
+    skinned = evaluate.skinned_surface(rig, surface, weights)
+    assert skinned.shape == (frames, 300, 3)
+    np.testing.assert_allclose(skinned[0], surface, atol=1e-6)  # frame 0 is the rest pose
+    assert np.abs(skinned[-1] - surface).max() > 0.1  # and the swinging bone's points move
+    fit = evaluate.crop_fit_error(keypoints, skinned, 2.0, (parents, keep), 30.0)
+    assert fit["cd"] == pytest.approx(0.0, abs=1e-3) and fit["cd_capture"] < 1e-7
+    # The capture shifted by 0.05 from frame 1 on: the rig, driven by the same keypoints, stays.
+    shifted = skinned.copy()
+    shifted[1:] += np.float32([0.0, 0.05, 0.0])
+    fit = evaluate.crop_fit_error(keypoints, shifted, 2.0, (parents, keep), 30.0)
+    assert fit["cd"] > 1.0 and fit["cd_capture"] == pytest.approx(fit["cd"] / 1e4 / 4, rel=1e-6)
+    # Larger crops are compared on a fixed subset of point indices, the same in every frame.
+    np.testing.assert_array_equal(evaluate.fit_subset(300), np.arange(300))
+    subset = evaluate.fit_subset(5000)
+    assert len(np.unique(subset)) == evaluate.FIT_POINTS and np.all(np.diff(subset) > 0)
+    np.testing.assert_array_equal(evaluate.fit_subset(5000), subset)
+    fewer = evaluate.crop_fit_error(keypoints, shifted, 2.0, (parents, keep), 30.0, limit=100)
+    pick = evaluate.fit_subset(300, 100)
+    rig, weights = evaluate.crop_rig(keypoints, shifted[0, pick], (parents, keep), 30.0)
+    direct = metrics.rig_fit_error(
+        evaluate.skinned_surface(rig, shifted[0, pick], weights), shifted[:, pick], 2.0
+    )
+    assert fewer == pytest.approx(direct, rel=1e-6)
+
+
+def test_the_field_scores_table_says_n_a_where_a_score_is_missing():
+    full = {
+        "tree_edit_distance": 4,
+        **{k: {"mean": 1.5, "ci95": 0.25} for k in FIELD_KEYS},
+    }
+    lines = evaluate.rig_scores_table({"Ours": full, "No joints": {"rig_fit_cd": full["cd_j2j"]}})
+    assert lines[0].startswith("| model | TED | CD-J2J x1e-2 | CD-J2B x1e-2 | CD-B2B x1e-2 |")
+    assert lines[2] == "| Ours | 4 | " + " | ".join(["1.5 (0.25)"] * 5) + " |"
+    assert lines[3] == "| No joints | n/a | n/a | n/a | n/a | 1.5 (0.25) | n/a |"
+    assert evaluate.rig_scores_table({"Ours": {"sc": {"score": 0.5}}}) == []
 
 
 def test_evaluate_refuses_a_vrnn_run_and_a_missing_folder(runs, tmp_path, capsys):
@@ -424,6 +513,9 @@ def test_train_skel_curves_reports_the_test_scores(runs, tmp_path):
             "joint_distance_ci95": expected["joint_distance"]["ci95"],
             "skeleton_kept_nodes": expected["skeleton_kept_nodes"],
             **{key: expected[key] for key in SKELETON_KEYS[1:]},
+            "tree_edit_distance": expected["tree_edit_distance"],
+            **{key: expected[key]["mean"] for key in FIELD_KEYS},
+            **{f"{key}_ci95": expected[key]["ci95"] for key in FIELD_KEYS},
         },
         nan_ok=True,  # one test sequence: no CI
     )

@@ -164,6 +164,9 @@ def test_tables_and_pictures_render_from_rows_and_name_the_missing_ones(tables, 
 
     rows = [_row(b, s, "preset", 0.2, 5, 30.0 + s) for b in tables.BODIES for s in (0, 1)]
     rows[0]["scores"]["sc"] = 0.812
+    # A row scored by code that has the field's scores (the others predate them).
+    field = {"cd_j2j": 12.5, "cd_j2b": 11.0, "cd_b2b": 10.25, "rig_fit_cd": 42.0}
+    rows[1]["scores"] |= {**field, "rig_fit_cd_ci95": 3.5}
     for b in tables.BODIES[:3]:
         rows += [_row(b, s, "fan_in", 0.1, 8, 29.0) for s in (0, 1)]
     rows += [
@@ -173,6 +176,19 @@ def test_tables_and_pictures_render_from_rows_and_name_the_missing_ones(tables, 
     tables.render(rows, tmp_path)
     t1 = (tmp_path / "table1_sc.md").read_text()
     assert "| synth-arm (Panda) | 0 | 0.812 (0.100) |" in t1 and "Rows not made" not in t1
+    # The kept tree of every row is the chain 0-1-3 (node 2 pruned). synth-arm's true tree is a
+    # chain of 9 joints forking into two chains of 2 (13 joints), synth-hand's a root with five
+    # chains of 4 (21): deleting all but a chain of 3 nodes costs 10 and 18, and no script with
+    # fewer edits removes that many nodes.
+    arm = t1.split("| synth-arm (Panda) | 0 |")[1].split("\n")[0]
+    assert arm.endswith("| 5 / 3 | 10 | not stored | not stored | 0123456 |")
+    hand = t1.split("| synth-hand (HanCo) | 0 |")[1].split("\n")[0]
+    assert "| 5 / 3 | 18 | not stored | not stored |" in hand
+    arm1 = t1.split("| synth-arm (Panda) | 1 |")[1].split("\n")[0]
+    assert "| 5 / 3 | 10 | 12.5 / 11 / 10.2 | 42 (3.5) |" in arm1
+    assert "- not stored: not stored in the row" in t1
+    table1 = json.loads((tmp_path / "table1_sc.json").read_text())["rows"]
+    assert [r["tree_edit_distance"] for r in table1[:2]] == [10, 10]
     t2 = (tmp_path / "table2_tracking.md").read_text()
     assert "GT (L_vol -> joint MSE) | 33 (1.5) |" in t2 and "synth-hand-s0-gt" in t2
     t9 = (tmp_path / "table9_10_no_vol.md").read_text()

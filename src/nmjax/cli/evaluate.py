@@ -28,8 +28,9 @@ def evaluate(argv: list[str]) -> int:
         "SC-score, 4D-tracking Chamfer and interpolation M-CD (paper Tables 1, 2, 11, 12) of a "
         "phase-2 run (or the phase-1 metrics of a phase-1 run); on data with ground-truth "
         "joints also the skeleton against the true one (joint distance, joint coverage, edge "
-        "precision, bone recall, distinct nodes); with --generation, the generation measures "
-        "of a phase-2 run instead.",
+        "precision, bone recall, distinct nodes, tree edit distance, CD-J2J / J2B / B2B); the "
+        "fit error of the run's rig to its test crops; with --generation, the generation "
+        "measures of a phase-2 run instead.",
     )
     p.add_argument("--run", required=True, help="phase-2 ('nm') or phase-1 run folder")
     p.add_argument("--vrnn-run", default=None, help="positional VRNN run (default: found)")

@@ -14,6 +14,12 @@
   edge precision (and within two hops), bone recall and distinct nodes (`metrics`).
 - 4D-tracking Chamfer x1e4 (Table 2): reconstruction of every crop thresholded at 0.5 against its
   voxels, averaged per sequence; mean and 95% confidence interval over test sequences.
+- The field's scores, beside SC (`metrics.rig_scores`): the tree edit distance of the kept tree
+  to the true tree (APTED, unit insert and delete, rename free); CD-J2J, CD-J2B and CD-B2B x1e-2
+  of the kept nodes against the true joints in each frame's body box scaled to [-0.5, 0.5]^3;
+  the fit error of the rig `nmjax export` builds (each crop's frame-0 points skinned with
+  Algorithm 2's weights and driven by the rig, against every frame's points), Chamfer x1e4 in
+  the cube and in the capture's units.
 - Interpolation M-CD (Eq. 22, Tables 11-12) at sampling rates SR = 3, 5, ..., 30 for Ours (the
   "nm" dynamics), VRNN (a positional "vrnn" run on the same phase-1 run, when one is given or
   found next to RUN), Lerp and Slerp. Keyframes x_ts, x_te = x_{ts+SR} are taken every SR frames
@@ -40,12 +46,24 @@ and of the generated set as a whole), the bone-length error of the generated fra
 clips of N frames (`metrics.set_distance`), with 95% confidence intervals over clips. Writes
 `<out>/generation.json`, `generation.md` and `generation.png` (each measure against N).
 
-The package, by job: `phase1` (SC-score, tracking, the skeleton measures), `phase2`
+The package, by job: `phase1` (SC-score, tracking, the skeleton measures), `field_scores` (the
+tree edit distance, CD-J2J / J2B / B2B and the rig's fit error of a phase-1 run), `phase2`
 (interpolation M-CD and `evaluate_run`, the command), `generation` (the generation measures and
 their command), `tables` (the markdown of results.json), `stats` (means and confidence
 intervals). Every public name is importable from `nmjax.evaluate`.
 """
 
+from nmjax.evaluate.field_scores import (
+    FIT_KEYS,
+    FIT_POINTS,
+    SKELETON_CD_KEYS,
+    crop_fit_error,
+    crop_rig,
+    field_scores,
+    fit_subset,
+    sequence_scores,
+    skinned_surface,
+)
 from nmjax.evaluate.generation import (
     GEN_HORIZONS,
     GEN_MEASURES,
@@ -68,11 +86,12 @@ from nmjax.evaluate.generation import (
 from nmjax.evaluate.phase1 import (
     PHASE1_METRICS,
     evaluate_phase1,
+    normalized_crops,
+    phase1_crops,
     phase1_outputs,
     phase1_scores,
     picture_frame,
     skeleton_against_truth,
-    test_crops,
     true_tree,
 )
 from nmjax.evaluate.phase2 import (
@@ -87,15 +106,20 @@ from nmjax.evaluate.phase2 import (
 )
 from nmjax.evaluate.stats import confidence_interval, summarize, summarize_per_rate
 from nmjax.evaluate.tables import (
+    RIG_SCORES_COLUMNS,
+    RIG_SCORES_NOTE,
     SKELETON_TRUTH_COLUMNS,
     SKELETON_TRUTH_NOTE,
     fmt,
     interpolation_table,
     markdown_tables,
+    rig_scores_table,
     skeleton_truth_table,
 )
 
 __all__ = [
+    "FIT_KEYS",
+    "FIT_POINTS",
     "GENERATION_METRICS",
     "GEN_HORIZONS",
     "GEN_MEASURES",
@@ -106,17 +130,24 @@ __all__ = [
     "METHODS",
     "PHASE1_METRICS",
     "REFERENCE",
+    "RIG_SCORES_COLUMNS",
+    "RIG_SCORES_NOTE",
     "SAMPLING_RATES",
+    "SKELETON_CD_KEYS",
     "SKELETON_TRUTH_COLUMNS",
     "SKELETON_TRUTH_NOTE",
     "conditioning_clips",
     "confidence_interval",
     "crop_conditioning",
+    "crop_fit_error",
+    "crop_rig",
     "evaluate_generation",
     "evaluate_generation_run",
     "evaluate_interpolation",
     "evaluate_phase1",
     "evaluate_run",
+    "field_scores",
+    "fit_subset",
     "fmt",
     "generated_futures",
     "generation_markdown",
@@ -127,15 +158,19 @@ __all__ = [
     "keyframe_clips",
     "keyframe_starts",
     "markdown_tables",
+    "normalized_crops",
+    "phase1_crops",
     "phase1_outputs",
     "phase1_scores",
     "picture_frame",
     "real_clips",
     "real_reference",
+    "rig_scores_table",
+    "sequence_scores",
     "skeleton_against_truth",
     "skeleton_truth_table",
+    "skinned_surface",
     "summarize",
     "summarize_per_rate",
-    "test_crops",
     "true_tree",
 ]

@@ -1,6 +1,7 @@
 """Phase-1 evaluation on the test split: SC-score (Eq. 21, Table 1) in both definitions, 4D-tracking
-Chamfer x1e4 (Table 2), bone-length variation of the pruned skeleton and the skeleton against the
-ground truth, on test crops of T frames each normalised on its own, as in training.
+Chamfer x1e4 (Table 2), bone-length variation of the pruned skeleton, the skeleton against the
+ground truth and the field's scores (tree edit distance, CD-J2J / J2B / B2B, the rig's fit error),
+on test crops of T frames each normalised on its own, as in training.
 """
 
 from __future__ import annotations
@@ -10,6 +11,14 @@ from typing import Any
 import numpy as np
 
 from nmjax import metrics, run_folder
+from nmjax.config import frame_rate
+from nmjax.evaluate.field_scores import (
+    FIT_KEYS,
+    FIT_POINTS,
+    SKELETON_CD_KEYS,
+    field_scores,
+    sequence_scores,
+)
 from nmjax.evaluate.stats import summarize
 from nmjax.evaluate.tables import SKELETON_TRUTH_COLUMNS
 from nmjax.train.trained import Detector
@@ -32,49 +41,94 @@ PHASE1_METRICS = {
     "bone_recall": "share of true bones whose joints' nodes are the same or adjacent in the "
     "skeleton",
     "distinct_nodes": "kept nodes that are some joint's most frequent nearest kept node",
+    "tree_edit_distance": "tree edit distance between the kept tree (skeleton.json's pruned tree "
+    "over its kept nodes) and the dataset's true tree, rooted and unlabelled: APTED with insert "
+    "1, delete 1, rename 0, every node's children ordered by the shape of their subtrees "
+    "(Reart, AutoURDF)",
+    "cd_j2j": "CD-J2J x1e-2 (RigNet, as MagicArticulate evaluates it): 1/2 (mean over kept nodes "
+    "of the distance to the nearest true joint + mean over true joints of the distance to the "
+    "nearest kept node), both in the frame's body box scaled to [-0.5, 0.5]^3; mean over frames "
+    "per sequence; mean and 95% CI over sequences",
+    "cd_j2b": "CD-J2B x1e-2: as CD-J2J, each joint's distance to the nearest bone segment of the "
+    "other skeleton (the pruned tree's bones between kept nodes; the true tree's bones)",
+    "cd_b2b": f"CD-B2B x1e-2: as CD-J2J, the mean along each skeleton's bones "
+    f"({metrics.BONE_SAMPLES} midpoint samples a bone, weighted by its length) of the distance to "
+    "the nearest bone segment of the other skeleton",
+    "rig_fit_cd": "the rig's fit error, Chamfer of squared distances x1e4 in the cube (Table 2's "
+    "units): each test crop's frame-0 points, skinned with Algorithm 2's weights by the rig "
+    "`nmjax export` builds (the kept nodes, rest pose frame 0, swing rotations from the "
+    "keypoints' bones; linear blend skinning), against the crop's points in every frame (at "
+    f"most {FIT_POINTS}, the same point indices in every frame); mean over frames and crops per "
+    "sequence; mean and 95% CI over sequences",
+    "rig_fit_cd_capture": "the rig's fit error in the capture's units, squared: rig_fit_cd's "
+    "Chamfer / s^2 (s the crop's normalisation factor, p' = s (p - bmin) - 1), unscaled",
 }
 
 
-def test_crops(seq, frames: int, sample_rate: int, grid: int, max_crops: int):
-    """Non-overlapping crops of one sequence, each normalised and voxelised like training crops.
+def normalized_crops(seq, frames: int, sample_rate: int, max_crops: int):
+    """Non-overlapping crops of one sequence (at most `max_crops`, spread over it), each
+    normalised on its own like a training crop (`nmjax.data.normalize`).
 
     Returns:
-      voxels (C, T, G, G, G) and joints (C, T, J, 3) (None when the sequence has none).
+      points (C, T, N, 3) in the cube, joints (C, T, J, 3) (None when the sequence has none)
+      and each crop's normalisation factor s of p' = s (p - bmin) - 1, (C,).
     """
     from nmjax.data.datasets import crop_sequence, crop_span
-    from nmjax.data.normalize import normalize_sequence
-    from nmjax.data.voxelize import voxelize
+    from nmjax.data.normalize import normalization_box, normalize_sequence
 
     span = crop_span(frames, sample_rate)
     starts = np.arange(0, max(seq.num_frames - span, 0) + 1, span)
     if len(starts) > max_crops:
         starts = starts[np.linspace(0, len(starts) - 1, max_crops).astype(int)]
-    voxels, joints = [], []
+    points, joints, scales = [], [], []
     for start in starts:
-        points, gt = crop_sequence(seq, frames, sample_rate, int(start))
-        points, gt = normalize_sequence(points, gt)
-        voxels.append(voxelize(points, grid))
+        raw, gt = crop_sequence(seq, frames, sample_rate, int(start))
+        scales.append(float(normalization_box(raw)[1].reshape(())))
+        normed, gt = normalize_sequence(raw, gt)
+        points.append(normed)
         joints.append(gt)
     has_joints = all(j is not None for j in joints)
-    return np.stack(voxels), (np.stack(joints) if has_joints else None)
+    return np.stack(points), (np.stack(joints) if has_joints else None), np.asarray(scales)
+
+
+def phase1_crops(detector: Detector, max_crops: int = 8, split: str = "test"):
+    """The detector on the crops of `normalized_crops`, one sequence of `split` at a time.
+
+    Yields:
+      {"name", "points" (C, T, N, 3) in the cube, "box_scale" (C,) the crops' normalisation
+       factors, "voxels" (C, T, G, G, G), "joints" (C, T, J, 3) or None, "keypoints"
+       (C, T, K, 4), "recon" (C, T, G, G, G)}.
+    """
+    from nmjax.data.datasets import load_sequences
+    from nmjax.data.voxelize import voxelize
+
+    cfg = detector.cfg
+    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
+        points, joints, scales = normalized_crops(
+            seq, cfg.data.frames, cfg.data.sample_rate, max_crops
+        )
+        voxels = np.stack([voxelize(p, cfg.data.grid) for p in points])
+        keypoints, recon = detector.run_batches(voxels)
+        yield {
+            "name": seq.name,
+            "points": points,
+            "box_scale": scales,
+            "voxels": voxels,
+            "joints": joints,
+            "keypoints": keypoints,
+            "recon": recon,
+        }
 
 
 def phase1_outputs(detector: Detector, max_crops: int = 8, split: str = "test"):
-    """The detector on the crops of `test_crops`, one sequence of `split` at a time.
+    """`phase1_crops` as tuples, without the points.
 
     Yields:
       (sequence name, voxels (C, T, G, G, G), joints (C, T, J, 3) or None, keypoints
       (C, T, K, 4), reconstructions (C, T, G, G, G)).
     """
-    from nmjax.data.datasets import load_sequences
-
-    cfg = detector.cfg
-    for seq in load_sequences(cfg.data.name, split, cfg.data.root):
-        voxels, joints = test_crops(
-            seq, cfg.data.frames, cfg.data.sample_rate, cfg.data.grid, max_crops
-        )
-        keypoints, recon = detector.run_batches(voxels)
-        yield seq.name, voxels, joints, keypoints, recon
+    for c in phase1_crops(detector, max_crops, split):
+        yield c["name"], c["voxels"], c["joints"], c["keypoints"], c["recon"]
 
 
 def true_tree(detector: Detector, num_joints: int) -> np.ndarray | None:
@@ -150,20 +204,29 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
     skeleton.json (`run_folder.pruned_skeleton`): the bones between kept nodes over the same crops
     (each crop one sequence of T frames), absent when the run has no skeleton yet; the skeleton
     against the true tree of the dataset's meta.json (`true_tree`), absent without ground-truth
-    joints or a skeleton.
+    joints or a skeleton. The field's scores (`nmjax.evaluate.field_scores`: tree edit
+    distance, CD-J2J / J2B / B2B and the rig's fit error) take the same skeleton and crops.
 
     Returns:
       {"sc": {"score", "std_over_joints", "per_sequence"}, "sc_fixed_nodes": {same} (both absent
        without ground-truth joints), "tracking": {"mean", "ci95", "n", "per_sequence"},
        "bone_length_variation": {"mean", "kept_nodes", "per_sequence"}, and the keys of
-       `skeleton_against_truth`}.
+       `skeleton_against_truth` and of `field_scores`}.
     """
     sc = metrics.SemanticConsistency()
     per_seq_sc: dict[str, dict[str, float]] = {"per_frame": {}, "fixed": {}}
     per_seq_cd, per_seq_bones, all_keypoints = {}, {}, []
     truth: dict[str, list] = {"names": [], "keypoints": [], "joints": []}
     skeleton = run_folder.pruned_skeleton(detector.run)
-    for name, voxels, joints, keypoints, recon in phase1_outputs(detector, max_crops, split):
+    per_seq_field: dict[str, dict[str, float]] = {}
+    true_parents, rate = None, frame_rate(detector.cfg.data.name, detector.cfg.data.sample_rate)
+    for crops in phase1_crops(detector, max_crops, split):
+        name, voxels, joints = crops["name"], crops["voxels"], crops["joints"]
+        keypoints, recon = crops["keypoints"], crops["recon"]
+        if joints is not None and not truth["names"]:  # the first sequence with joints
+            true_parents = true_tree(detector, joints.shape[-2])
+        if skeleton is not None:
+            per_seq_field[name] = sequence_scores(crops, skeleton, true_parents, rate)
         per_seq_cd[name] = float(
             np.mean([metrics.tracking_chamfer(v, r) for v, r in zip(voxels, recon, strict=True)])
         )
@@ -201,12 +264,13 @@ def evaluate_phase1(detector: Detector, max_crops: int = 8, split: str = "test")
             "per_sequence": per_seq_bones,
         }
     if skeleton is not None and truth["names"]:
-        true_parents = true_tree(detector, truth["joints"][0].shape[-2])
         out.update(
             skeleton_against_truth(
                 truth["keypoints"], truth["joints"], skeleton, true_parents, truth["names"]
             )
         )
+    if skeleton is not None and per_seq_field:
+        out.update(field_scores(per_seq_field, skeleton, true_parents))
     return out
 
 
@@ -215,7 +279,10 @@ def phase1_scores(results: dict) -> dict[str, float]:
     "tracking_cd_ci95"; "sc", "sc_fixed_nodes" and each one's "_std_over_joints" (with
     ground-truth joints); "bone_length_variation" (with a skeleton); "joint_distance" and
     "joint_distance_ci95" and the other skeleton measures (`SKELETON_TRUTH_COLUMNS`) with
-    "skeleton_kept_nodes" (with joints and a skeleton)."""
+    "skeleton_kept_nodes" (with joints and a skeleton); the field's scores (`field_scores`):
+    "tree_edit_distance", "cd_j2j", "cd_j2b", "cd_b2b" (with joints and the true tree; CD-J2J
+    with joints alone) and "rig_fit_cd", "rig_fit_cd_capture" (with a skeleton), each of the
+    last five with its "_ci95"."""
     scores = {
         "tracking_cd": results["tracking"]["mean"],
         "tracking_cd_ci95": results["tracking"]["ci95"],
@@ -232,6 +299,12 @@ def phase1_scores(results: dict) -> dict[str, float]:
     for key in [k for k, _ in SKELETON_TRUTH_COLUMNS[1:]] + ["skeleton_kept_nodes"]:
         if key in results:
             scores[key] = results[key]
+    if "tree_edit_distance" in results:
+        scores["tree_edit_distance"] = results["tree_edit_distance"]
+    for key in (*SKELETON_CD_KEYS, *FIT_KEYS):
+        if key in results:
+            scores[key] = results[key]["mean"]
+            scores[f"{key}_ci95"] = results[key]["ci95"]
     return scores
 
 

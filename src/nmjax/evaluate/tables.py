@@ -1,5 +1,6 @@
-"""The evaluation's markdown: Table 1 (SC-score), the skeleton against the ground truth, Table 2
-(4D tracking) and Tables 11-12 (interpolation M-CD) layouts, and the number format they share.
+"""The evaluation's markdown: Table 1 (SC-score), the skeleton against the ground truth, the
+field's scores (tree edit distance, CD-J2J / J2B / B2B, the rig's fit error), Table 2 (4D
+tracking) and Tables 11-12 (interpolation M-CD) layouts, and the number format they share.
 """
 
 from __future__ import annotations
@@ -66,6 +67,50 @@ def skeleton_truth_table(rows: dict[str, dict], sc: bool = False) -> list[str]:
     return lines
 
 
+# The field's scores (`nmjax.evaluate.field_scores`): (results key, column title).
+RIG_SCORES_COLUMNS = (
+    ("tree_edit_distance", "TED"),
+    ("cd_j2j", "CD-J2J x1e-2"),
+    ("cd_j2b", "CD-J2B x1e-2"),
+    ("cd_b2b", "CD-B2B x1e-2"),
+    ("rig_fit_cd", "rig fit CD x1e4"),
+    ("rig_fit_cd_capture", "rig fit CD, capture units^2"),
+)
+RIG_SCORES_NOTE = (
+    "TED = tree edit distance between the kept tree and the true tree (rooted, unlabelled; "
+    "APTED, insert 1, delete 1, rename 0). CD-J2J / J2B / B2B = RigNet's joint-to-joint, "
+    "joint-to-bone and bone-to-bone Chamfer distances, symmetric means of nearest Euclidean "
+    "distances between the kept nodes and the true joints, each frame's body box scaled to "
+    "[-0.5, 0.5]^3, x1e-2. Rig fit CD = each test crop's frame-0 points skinned (Algorithm 2's "
+    "weights, linear blend skinning) by the rig `nmjax export` builds, against the points of "
+    "every frame: Chamfer of squared distances, x1e4 in the cube (Table 2's units) and in the "
+    "capture's units. 95% CI over test sequences in parentheses; n/a: the data lacks joints or "
+    "the true tree, or the run lacks a skeleton."
+)
+
+
+def rig_scores_table(rows: dict[str, dict]) -> list[str]:
+    """Markdown lines of the field's scores (`RIG_SCORES_COLUMNS`), one row per {label: phase-1
+    results of `evaluate_phase1`}; "n/a" where a row lacks a score; no lines when no row has
+    any."""
+    if not any(key in p1 for p1 in rows.values() for key, _ in RIG_SCORES_COLUMNS):
+        return []
+    titles = [t for _, t in RIG_SCORES_COLUMNS]
+    lines = ["| model | " + " | ".join(titles) + " |", "|---|" + "---|" * len(titles)]
+    for label, p1 in rows.items():
+        cells = []
+        for key, _ in RIG_SCORES_COLUMNS:
+            value = p1.get(key)
+            if value is None:
+                cells.append("n/a")
+            elif key == "tree_edit_distance":
+                cells.append(str(value))
+            else:
+                cells.append(fmt(value["mean"], value["ci95"]))
+        lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def markdown_tables(results: dict) -> str:
     """The evaluation as markdown: Table 1, Table 2 and Tables 11-12 layouts."""
     lines = [f"# Evaluation of {results['run']}", ""]
@@ -96,6 +141,10 @@ def markdown_tables(results: dict) -> str:
     table = skeleton_truth_table({"Ours": p1})
     if table:
         lines += ["## Skeleton against the ground truth", "", SKELETON_TRUTH_NOTE, "", *table, ""]
+    table = rig_scores_table({"Ours": p1})
+    if table:
+        lines += ["## The field's scores: tree, skeleton and rig fit", "", RIG_SCORES_NOTE, ""]
+        lines += [*table, ""]
     if "tracking" in p1:
         tr = p1["tracking"]
         lines += [

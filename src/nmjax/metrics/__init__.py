@@ -6,6 +6,8 @@ files or imports another part of nmjax.
   distance, joint coverage, edge precision, bone recall, distinct nodes).
 - `motion`: the measures of generated motion (diversity, set distance to real motion).
 - `chamfer`: Chamfer distances, 4D tracking (Table 2) and M-CD (Eq. 22) on voxel grids.
+- `rig_scores`: the field's scores of a rig: tree edit distance to the true tree, CD-J2J,
+  CD-J2B, CD-B2B against the true skeleton, and the rig's fit error to its capture.
 
 Every public name is importable from `nmjax.metrics` itself: `metrics.semantic_consistency(...)`.
 """
@@ -27,6 +29,17 @@ from nmjax.metrics.motion import (
     root_relative,
     set_distance,
     set_diversity,
+)
+from nmjax.metrics.rig_scores import (
+    BONE_SAMPLES,
+    SKELETON_CD_SCALE,
+    cd_b2b,
+    cd_j2b,
+    cd_j2j,
+    rig_fit_error,
+    skeleton_chamfers,
+    tree_edit_distance,
+    unit_box,
 )
 from nmjax.metrics.sc import (
     SC_NODES,
@@ -55,15 +68,20 @@ from nmjax.metrics.skeleton_measures import (
 )
 
 __all__ = [
+    "BONE_SAMPLES",
     "COVERAGE_RADII",
     "MAX_SQ_DIST",
     "SC_NODES",
+    "SKELETON_CD_SCALE",
     "TRACKING_SCALE",
     "TWO_HOPS",
     "SemanticConsistency",
     "bone_length_variation",
     "bone_lengths",
     "bone_recall",
+    "cd_b2b",
+    "cd_j2b",
+    "cd_j2j",
     "chamfer_distance",
     "clip_distances",
     "distinct_nodes",
@@ -80,14 +98,18 @@ __all__ = [
     "nearest_keypoint_counts",
     "node_joints",
     "point_chamfer",
+    "rig_fit_error",
     "root_relative",
     "sc_score_from_counts",
     "semantic_consistency",
     "set_distance",
     "set_diversity",
     "skeleton_agreement",
+    "skeleton_chamfers",
     "skeleton_nodes",
     "tracking_chamfer",
+    "tree_edit_distance",
     "tree_within",
+    "unit_box",
     "voxel_points",
 ]

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from nmjax import atomic, cli, losses
 from nmjax import keypoints as kp_lib
+from nmjax.geometry import linear_blend_skinning
 from nmjax.run_folder import pruned_skeleton
 from nmjax.runs import extract_run_skeleton
 from nmjax.skeleton import (
@@ -22,7 +23,6 @@ from nmjax.skeleton import (
     extract_skeleton,
     find_parents,
     influence,
-    linear_blend_skinning,
     load_skeleton,
     prune,
     skeleton_from_parents,

@@ -1,13 +1,20 @@
-"""Rotations and forward kinematics (paper Eqs. 1-2, 24-25; DESIGN §8-9).
+"""Rotations, forward kinematics and linear blend skinning (paper Eqs. 1-2, 24-25, appendix A.4;
+DESIGN §8-9): the one home of each in nmjax.
 
 Rotation matrices act on column vectors (`R @ d`); their columns are the rotated x, y, z axes.
-Quaternions are (w, x, y, z). Every function is pure and works under `jit`, `vmap` and `grad`
+Quaternions are (w, x, y, z). Every JAX function is pure and works under `jit`, `vmap` and `grad`
 with finite gradients, including at degenerate inputs (zero vectors, identical rotations).
+
+The functions ending in `_np` are NumPy twins for the NumPy data generators (the synthetic bodies
+of `nmjax.data.synthetic`, SMPL / MANO in `nmjax.data.body_models`), which pose thousands of
+frames in float64 outside any trace; each computes what its JAX function computes (tested on
+random inputs against it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import jax.numpy as jnp
 import numpy as np
@@ -249,6 +256,23 @@ def tree_levels(parents: Sequence[int] | np.ndarray, order: Sequence[int] | np.n
     return [np.flatnonzero(depth == d) for d in range(int(depth.max()) + 1)]
 
 
+def _checked_tree(
+    parents: Sequence[int] | np.ndarray,
+    order: Sequence[int] | np.ndarray,
+    rots_shape: tuple[int, ...],
+    offsets_shape: tuple[int, ...],
+) -> tuple[list, np.ndarray]:
+    """(`tree_levels`, parents as a (K,) int array) after checking the shapes of an FK call."""
+    levels = tree_levels(parents, order)
+    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    k = parents.shape[0]
+    if tuple(rots_shape[-3:]) != (k, 3, 3):
+        raise ValueError(f"local_rots must be (..., {k}, 3, 3) for {k} joints, got {rots_shape}")
+    if tuple(offsets_shape[-2:]) != (k, 3):
+        raise ValueError(f"offsets must be (K, 3) or (..., K, 3) with K={k}, got {offsets_shape}")
+    return levels, parents
+
+
 def forward_kinematics_with_rotations(
     root_pos: Array,
     local_rots: Array,
@@ -278,15 +302,8 @@ def forward_kinematics_with_rotations(
     Returns:
         positions (..., K, 3) and global rotations (..., K, 3, 3).
     """
-    levels = tree_levels(parents, order)
-    parents = np.asarray(parents, dtype=np.int64).reshape(-1)
+    levels, parents = _checked_tree(parents, order, local_rots.shape, offsets.shape)
     k = parents.shape[0]
-    if local_rots.shape[-3:] != (k, 3, 3):
-        raise ValueError(
-            f"local_rots must be (..., {k}, 3, 3) for {k} joints, got {local_rots.shape}"
-        )
-    if offsets.shape[-2:] != (k, 3):
-        raise ValueError(f"offsets must be (K, 3) or (..., K, 3) with K={k}, got {offsets.shape}")
     lead = jnp.broadcast_shapes(root_pos.shape[:-1], local_rots.shape[:-3], offsets.shape[:-2])
     local_rots = jnp.broadcast_to(local_rots, (*lead, k, 3, 3))
     offsets = jnp.broadcast_to(offsets, (*lead, k, 3))
@@ -340,3 +357,174 @@ def bone_offsets(
     if directions is None:
         return d
     return normalize(directions) * _safe_norm(d, keepdims=True)
+
+
+# --- linear blend skinning (appendix A.4) ------------------------------------------------------
+
+
+def linear_blend_skinning(
+    vertices: Any,
+    weights: Any,
+    transforms: Any = None,
+    *,
+    rotations: Any = None,
+    translations: Any = None,
+) -> Array:
+    """Linear blend skinning v' = sum_k w_vk (R_k v + t_k) (appendix A.4).
+
+    Give either `transforms` (..., K, 4, 4) homogeneous joint transforms, or `rotations`
+    (..., K, 3, 3) and `translations` (..., K, 3). Works under jit / vmap / grad.
+
+    Args:
+      vertices: (V, 3) rest-pose vertices.
+      weights: (V, K) skin weights.
+
+    Returns:
+      (..., V, 3) deformed vertices.
+    """
+    if (transforms is None) == (rotations is None and translations is None):
+        raise ValueError("give either transforms or both rotations and translations")
+    if transforms is not None:
+        transforms = jnp.asarray(transforms)
+        rotations, translations = transforms[..., :3, :3], transforms[..., :3, 3]
+    elif rotations is None or translations is None:
+        raise ValueError("rotations and translations must be given together")
+    v = jnp.asarray(vertices)
+    w = jnp.asarray(weights)
+    rotations, translations = jnp.asarray(rotations), jnp.asarray(translations)
+    if v.ndim != 2 or v.shape[-1] != 3 or w.shape != (v.shape[0], rotations.shape[-3]):
+        raise ValueError(
+            f"vertices (V, 3) and weights (V, K) must match the K={rotations.shape[-3]} "
+            f"transforms; got {v.shape} and {w.shape}"
+        )
+    per_joint = jnp.einsum("...kij,vj->...kvi", rotations, v) + translations[..., :, None, :]
+    return jnp.einsum("vk,...kvi->...vi", w, per_joint)
+
+
+# --- NumPy twins (see the module docstring) ----------------------------------------------------
+
+
+def axis_angle_to_matrix_np(axis_angle: Any, angle: Any = None) -> np.ndarray:
+    """NumPy twin of `axis_angle_to_matrix`: Rodrigues' formula R = I + sin(t) [k] + (1 - cos(t))
+    [k]^2 for the unit axis k and angle t, in float64.
+
+    Used by `nmjax.data.body_models` (SMPL / MANO poses, rotation vectors) and
+    `nmjax.data.synthetic` (a body's joint rotations, a fixed axis and an angle per frame).
+
+    Args:
+      axis_angle: (..., 3) rotation vectors (the angle in radians times the unit axis); or, when
+        `angle` is given, axes of any non-zero length (normalised here).
+      angle: None, or (...) angles in radians, broadcastable against `axis_angle`'s (...).
+
+    Returns:
+      (..., 3, 3); the identity for a zero rotation vector.
+    """
+    axis = np.asarray(axis_angle, dtype=np.float64)
+    length = np.linalg.norm(axis, axis=-1)
+    angle = length if angle is None else np.asarray(angle, dtype=np.float64)
+    k = axis / np.where(length > 0, length, 1.0)[..., None]  # a zero vector: no axis, R = I
+    zero = np.zeros_like(k[..., 0])
+    cross = np.stack(
+        [zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
+        axis=-1,
+    ).reshape(*k.shape[:-1], 3, 3)
+    s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
+    return np.eye(3) + s * cross + (1.0 - c) * (cross @ cross)
+
+
+def forward_kinematics_np(
+    root_pos: Any,
+    local_rots: Any,
+    offsets: Any,
+    parents: Sequence[int] | np.ndarray,
+    order: Sequence[int] | np.ndarray,
+    *,
+    offset_frame: str = "own",
+) -> tuple[np.ndarray, np.ndarray]:
+    """NumPy twin of `forward_kinematics_with_rotations`: positions and global rotations, float64.
+
+    R_root = R~_root, mu_root = root_pos, R_k = R_parent(k) R~_k for every other joint; the
+    offset d_k is rotated by the joint's own global rotation (`offset_frame="own"`, Eq. 2 as
+    printed: mu_k = mu_parent(k) + R_k d_k) or by its parent's (`offset_frame="parent"`: mu_k =
+    mu_parent(k) + R_parent(k) d_k, the convention of SMPL's kinematic chain and of the synthetic
+    bodies, whose offsets place a joint on its parent's frame). The two agree when every d_k of
+    "parent" is R~_k times that of "own".
+
+    Used by `nmjax.data.body_models` (SMPL / MANO's chain) and `nmjax.data.synthetic` (posing a
+    body). One vectorised step per tree depth, as the JAX function.
+
+    Args:
+      root_pos: (..., 3).
+      local_rots: (..., K, 3, 3) rotations relative to the parent.
+      offsets: (K, 3) or (..., K, 3) (they may change per frame, e.g. a sliding joint); the
+        root's is ignored.
+      parents: (K,) parent indices, the root its own parent.
+      order: (K,) topological order, root first.
+      offset_frame: "own" or "parent" (above).
+
+    Returns:
+      positions (..., K, 3) and global rotations (..., K, 3, 3).
+    """
+    if offset_frame not in ("own", "parent"):
+        raise ValueError(f"offset_frame must be 'own' or 'parent', got {offset_frame!r}")
+    root_pos = np.asarray(root_pos, dtype=np.float64)
+    local_rots = np.asarray(local_rots, dtype=np.float64)
+    offsets = np.asarray(offsets, dtype=np.float64)
+    levels, parents = _checked_tree(parents, order, local_rots.shape, offsets.shape)
+    k = parents.shape[0]
+    lead = np.broadcast_shapes(root_pos.shape[:-1], local_rots.shape[:-3], offsets.shape[:-2])
+    local_rots = np.broadcast_to(local_rots, (*lead, k, 3, 3))
+    offsets = np.broadcast_to(offsets, (*lead, k, 3))
+    positions, rotations = np.empty((*lead, k, 3)), np.empty((*lead, k, 3, 3))
+    root = int(levels[0][0])
+    positions[..., root, :] = root_pos
+    rotations[..., root, :, :] = local_rots[..., root, :, :]
+    for level in levels[1:]:  # tree depth, not joints
+        par = parents[level]
+        glob = rotations[..., par, :, :] @ local_rots[..., level, :, :]
+        frame = glob if offset_frame == "own" else rotations[..., par, :, :]
+        step = np.einsum("...ij,...j->...i", frame, offsets[..., level, :])
+        positions[..., level, :] = positions[..., par, :] + step
+        rotations[..., level, :, :] = glob
+    return positions, rotations
+
+
+def linear_blend_skinning_np(
+    vertices: Any, weights: Any, rotations: Any, translations: Any
+) -> np.ndarray:
+    """NumPy twin of `linear_blend_skinning` (its rotations / translations form), float64:
+    v' = sum_k w_vk (R_k v + t_k).
+
+    Used by `nmjax.data.body_models` (skinning SMPL / MANO meshes, whose rest vertices change per
+    frame with the pose blend shapes). The joints' [R | t] are blended per vertex first, one
+    (V, K) @ (..., K, 12) product, so the cost does not grow with V x K per frame.
+
+    Args:
+      vertices: (V, 3) or (..., V, 3) rest-pose vertices.
+      weights: (V, K) skin weights.
+      rotations: (..., K, 3, 3).
+      translations: (..., K, 3).
+
+    Returns:
+      (..., V, 3) deformed vertices.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    rotations = np.asarray(rotations, dtype=np.float64)
+    weights = np.asarray(weights)
+    if (
+        vertices.ndim < 2
+        or vertices.shape[-1] != 3
+        or weights.shape
+        != (
+            vertices.shape[-2],
+            rotations.shape[-3],
+        )
+    ):
+        raise ValueError(
+            f"vertices (..., V, 3) and weights (V, K) must match the K={rotations.shape[-3]} "
+            f"rotations; got {vertices.shape} and {weights.shape}"
+        )
+    per_joint = np.concatenate([rotations, np.asarray(translations)[..., None]], axis=-1)
+    blended = weights @ per_joint.reshape(*per_joint.shape[:-2], 12)
+    blended = blended.reshape(*blended.shape[:-1], 3, 4)
+    return (blended[..., :3] @ vertices[..., None])[..., 0] + blended[..., 3]

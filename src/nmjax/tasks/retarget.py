@@ -150,11 +150,9 @@ def retarget_vertices(
     Returns:
       (T, V, 3) deformed vertices.
     """
-    from nmjax.skeleton import linear_blend_skinning
-
     rel = rotations @ jnp.swapaxes(rest_rots, -1, -2)  # (T, K, 3, 3)
     trans = joints - jnp.einsum("tkij,kj->tki", rel, rest_joints)
-    return linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
+    return geometry.linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
 
 
 def retarget_mesh(

@@ -146,7 +146,7 @@ def test_samples_lie_on_the_surface_area_uniformly(name):
     body = bodies.get_body(name)
     positions, rotations = synthetic.pose(body, np.zeros((1, len(body.dofs))), np.zeros((1, 3)))
     rng = np.random.default_rng(0)
-    points = synthetic.sample_surface(body, positions, rotations, 20000, rng)[0]
+    points = synthetic.sample_body_surface(body, positions, rotations, 20000, rng)[0]
     mesh = synthetic.rest_mesh(body)
     _, distance, _ = trimesh.proximity.closest_point(mesh, points[:2000])
     assert distance.max() < 1e-5

@@ -19,9 +19,10 @@ set that is missing or unfinished); the loaders never write. A sequence is made 
      signal shared by its group (a finger's curl, the hand's spread, a gait phase), mapped into a
      random sub-range of its limits and clipped to them;
   2. posing the joints by forward kinematics (`pose`, NumPy, vectorised over frames);
-  3. sampling surface points area-uniformly (`sample_surface`): the links are rigid, so triangles
-     are drawn on the rest-pose link meshes with probability proportional to their area, and the
-     samples are carried into every frame by their joint's rotation and position.
+  3. sampling surface points area-uniformly (`sample_body_surface`): the links are rigid, so
+     triangles are drawn on the rest-pose link meshes with probability proportional to their area,
+     and the samples are carried into every frame by their joint's rotation and position. (A
+     single mesh frame of a real dataset is sampled by `nmjax.data.meshes.sample_surface`.)
 
 Everything is deterministic for a seed: the set's generator `np.random.default_rng(seed)` draws the
 sequence lengths and spawns one child generator per sequence, so the same seed gives the same
@@ -181,7 +182,7 @@ def rest_mesh(body: Body) -> trimesh.Trimesh:
     return trimesh.Trimesh(**trimesh.triangles.to_kwargs(world))
 
 
-def sample_surface(
+def sample_body_surface(
     body: Body,
     positions: np.ndarray,
     rotations: np.ndarray,
@@ -252,7 +253,7 @@ def simulate(
     rng = np.random.default_rng(rng) if isinstance(rng, int) else rng
     angles, root = sample_motion(body, frames, rng)
     positions, rotations = pose(body, angles, root)
-    vertices = sample_surface(body, positions, rotations, points, rng)
+    vertices = sample_body_surface(body, positions, rotations, points, rng)
     return SyntheticSequence(
         vertices, positions.astype(np.float32), angles.astype(np.float32), root.astype(np.float32)
     )

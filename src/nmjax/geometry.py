@@ -257,20 +257,19 @@ def tree_levels(parents: Sequence[int] | np.ndarray, order: Sequence[int] | np.n
 
 
 def _checked_tree(
-    parents: Sequence[int] | np.ndarray,
-    order: Sequence[int] | np.ndarray,
-    rots_shape: tuple[int, ...],
-    offsets_shape: tuple[int, ...],
-) -> tuple[list, np.ndarray]:
-    """(`tree_levels`, parents as a (K,) int array) after checking the shapes of an FK call."""
+    parents: Sequence[int] | np.ndarray, order: Sequence[int] | np.ndarray, root_pos, rots, offsets
+) -> tuple[list, np.ndarray, tuple[int, ...]]:
+    """(`tree_levels`, parents as a (K,) int array, the broadcast batch shape) of an FK call,
+    after checking its arrays' shapes."""
     levels = tree_levels(parents, order)
     parents = np.asarray(parents, dtype=np.int64).reshape(-1)
     k = parents.shape[0]
-    if tuple(rots_shape[-3:]) != (k, 3, 3):
-        raise ValueError(f"local_rots must be (..., {k}, 3, 3) for {k} joints, got {rots_shape}")
-    if tuple(offsets_shape[-2:]) != (k, 3):
-        raise ValueError(f"offsets must be (K, 3) or (..., K, 3) with K={k}, got {offsets_shape}")
-    return levels, parents
+    if rots.shape[-3:] != (k, 3, 3):
+        raise ValueError(f"local_rots must be (..., {k}, 3, 3) for {k} joints, got {rots.shape}")
+    if offsets.shape[-2:] != (k, 3):
+        raise ValueError(f"offsets must be (K, 3) or (..., K, 3) with K={k}, got {offsets.shape}")
+    lead = np.broadcast_shapes(root_pos.shape[:-1], rots.shape[:-3], offsets.shape[:-2])
+    return levels, parents, lead
 
 
 def forward_kinematics_with_rotations(
@@ -302,9 +301,8 @@ def forward_kinematics_with_rotations(
     Returns:
         positions (..., K, 3) and global rotations (..., K, 3, 3).
     """
-    levels, parents = _checked_tree(parents, order, local_rots.shape, offsets.shape)
+    levels, parents, lead = _checked_tree(parents, order, root_pos, local_rots, offsets)
     k = parents.shape[0]
-    lead = jnp.broadcast_shapes(root_pos.shape[:-1], local_rots.shape[:-3], offsets.shape[:-2])
     local_rots = jnp.broadcast_to(local_rots, (*lead, k, 3, 3))
     offsets = jnp.broadcast_to(offsets, (*lead, k, 3))
     root = int(levels[0][0])
@@ -470,9 +468,8 @@ def forward_kinematics_np(
     root_pos = np.asarray(root_pos, dtype=np.float64)
     local_rots = np.asarray(local_rots, dtype=np.float64)
     offsets = np.asarray(offsets, dtype=np.float64)
-    levels, parents = _checked_tree(parents, order, local_rots.shape, offsets.shape)
+    levels, parents, lead = _checked_tree(parents, order, root_pos, local_rots, offsets)
     k = parents.shape[0]
-    lead = np.broadcast_shapes(root_pos.shape[:-1], local_rots.shape[:-3], offsets.shape[:-2])
     local_rots = np.broadcast_to(local_rots, (*lead, k, 3, 3))
     offsets = np.broadcast_to(offsets, (*lead, k, 3))
     positions, rotations = np.empty((*lead, k, 3)), np.empty((*lead, k, 3, 3))

@@ -270,6 +270,24 @@ def test_axis_angle_twin_matches_jax(seed):
 
 
 @SETTINGS
+@given(seed=st.integers(0, 999))
+def test_align_rotation_twin_matches_jax(seed):
+    rng = np.random.default_rng(seed)
+    u, v = rng.normal(size=(2, 3, 8, 3))
+    v[0, 0] = -3.0 * u[0, 0]  # antiparallel
+    v[0, 1] = 0.5 * u[0, 1]  # parallel
+    got = geo.align_rotation_np(u, v)
+    assert got.dtype == np.float64 and got.shape == (3, 8, 3, 3)
+    want = geo.align_rotation(jnp.asarray(u, jnp.float32), jnp.asarray(v, jnp.float32))
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    turned = np.einsum("...ij,...j->...i", got, u / np.linalg.norm(u, axis=-1, keepdims=True))
+    np.testing.assert_allclose(turned, v / np.linalg.norm(v, axis=-1, keepdims=True), atol=1e-12)
+    # A zero vector on either side: the identity (the JAX function's too).
+    np.testing.assert_array_equal(geo.align_rotation_np(np.zeros(3), v[1, 2]), np.eye(3))
+    np.testing.assert_allclose(geo.align_rotation(jnp.zeros(3), jnp.ones(3)), np.eye(3))
+
+
+@SETTINGS
 @given(k=st.sampled_from([1, 5, 9]), seed=st.integers(0, 999), batch=st.sampled_from([(), (2, 3)]))
 def test_forward_kinematics_twin_matches_jax(k, seed, batch):
     rng = np.random.default_rng(seed)

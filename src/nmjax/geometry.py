@@ -77,6 +77,14 @@ def matrix_to_rotation_6d(rot: Array) -> Array:
     return jnp.concatenate([rot[..., :, 0], rot[..., :, 1]], axis=-1)
 
 
+def _skew(w: Any, xp: Any) -> Any:
+    """(..., 3) -> (..., 3, 3) cross-product matrices [w], [w] d = w x d; `xp` is jnp or np."""
+    x, y, z = w[..., 0], w[..., 1], w[..., 2]
+    zero = xp.zeros_like(x)
+    rows = [zero, -z, y, z, zero, -x, -y, x, zero]
+    return xp.stack(rows, axis=-1).reshape(*w.shape[:-1], 3, 3)
+
+
 def axis_angle_to_matrix(axis_angle: Array) -> Array:
     """Rodrigues' formula: rotation by |w| radians about w / |w|.
 
@@ -89,16 +97,7 @@ def axis_angle_to_matrix(axis_angle: Array) -> Array:
     theta = _safe_norm(axis_angle)[..., None, None]
     small = theta < 1e-6
     safe_theta = jnp.where(small, 1.0, theta)
-    x, y, z = axis_angle[..., 0], axis_angle[..., 1], axis_angle[..., 2]
-    zero = jnp.zeros_like(x)
-    skew = jnp.stack(
-        [
-            jnp.stack([zero, -z, y], axis=-1),
-            jnp.stack([z, zero, -x], axis=-1),
-            jnp.stack([-y, x, zero], axis=-1),
-        ],
-        axis=-2,
-    )
+    skew = _skew(axis_angle, jnp)
     # sin(t)/t and (1 - cos(t))/t^2 with their Taylor series near 0.
     a = jnp.where(small, 1.0 - theta**2 / 6, jnp.sin(safe_theta) / safe_theta)
     b = jnp.where(small, 0.5 - theta**2 / 24, (1.0 - jnp.cos(safe_theta)) / safe_theta**2)
@@ -172,6 +171,25 @@ def matrix_to_quaternion(rot: Array) -> Array:
     chosen = jnp.take_along_axis(candidates, best[..., None, None], axis=-2)[..., 0, :]
     quat = normalize(chosen)
     return quat * jnp.where(quat[..., :1] < 0, -1.0, 1.0)
+
+
+def align_rotation(u: Array, v: Array) -> Array:
+    """The smallest rotation taking unit vectors u to v: (..., 3), (..., 3) -> (..., 3, 3).
+
+    Rodrigues' formula about u x v; antiparallel inputs turn by pi about an axis normal to u.
+    """
+    u, v = normalize(u), normalize(v)
+    c = jnp.sum(u * v, axis=-1)[..., None, None]
+    axis = jnp.cross(u, v)
+    # For u = -v any axis normal to u works: u x e_x, or u x e_y when u is along x.
+    fallback = jnp.cross(u, jnp.where(jnp.abs(u[..., :1]) < 0.9, jnp.eye(3)[0], jnp.eye(3)[1]))
+    anti = (c[..., 0, 0] < -1.0 + 1e-6)[..., None]
+    axis = jnp.where(anti, normalize(fallback), axis)
+    skew = _skew(axis, jnp)
+    eye = jnp.eye(3)
+    general = eye + skew + skew @ skew / (1.0 + jnp.where(anti[..., None], 0.0, c))
+    flip = 2.0 * axis[..., :, None] * axis[..., None, :] - eye  # rotation by pi about `axis`
+    return jnp.where(anti[..., None], flip, general)
 
 
 # --- interpolation -----------------------------------------------------------------------------
@@ -421,13 +439,34 @@ def axis_angle_to_matrix_np(axis_angle: Any, angle: Any = None) -> np.ndarray:
     length = np.linalg.norm(axis, axis=-1)
     angle = length if angle is None else np.asarray(angle, dtype=np.float64)
     k = axis / np.where(length > 0, length, 1.0)[..., None]  # a zero vector: no axis, R = I
-    zero = np.zeros_like(k[..., 0])
-    cross = np.stack(
-        [zero, -k[..., 2], k[..., 1], k[..., 2], zero, -k[..., 0], -k[..., 1], k[..., 0], zero],
-        axis=-1,
-    ).reshape(*k.shape[:-1], 3, 3)
+    cross = _skew(k, np)
     s, c = np.sin(angle)[..., None, None], np.cos(angle)[..., None, None]
     return np.eye(3) + s * cross + (1.0 - c) * (cross @ cross)
+
+
+def align_rotation_np(u: Any, v: Any) -> np.ndarray:
+    """NumPy twin of `align_rotation`, float64: the smallest rotation turning direction u onto
+    direction v, (..., 3) x2 -> (..., 3, 3); a zero vector on either side gives the identity.
+
+    Used by `nmjax.export.rig` (the swing rotations of a motion known by its positions).
+    """
+    u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)
+    nu, nv = np.linalg.norm(u, axis=-1), np.linalg.norm(v, axis=-1)
+    degenerate = (nu < 1e-12) | (nv < 1e-12)
+    u = u / np.where(degenerate, 1.0, nu)[..., None]
+    v = v / np.where(degenerate, 1.0, nv)[..., None]
+    c = np.sum(u * v, axis=-1)
+    skew = _skew(np.cross(u, v), np)
+    eye = np.broadcast_to(np.eye(3), (*c.shape, 3, 3))
+    opposite = c < -1.0 + 1e-9  # float64 resolves the general formula closer to -1 than float32
+    general = eye + skew + skew @ skew / np.where(opposite, 1.0, 1.0 + c)[..., None, None]
+    # Any axis normal to u turns it onto -u: u x e_x, or u x e_y when u lies along x.
+    other = np.where(np.abs(u[..., :1]) < 0.9, np.eye(3)[0], np.eye(3)[1])
+    normal = np.cross(u, other)
+    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
+    flip = 2.0 * normal[..., :, None] * normal[..., None, :] - eye  # pi about `normal`
+    out = np.where(opposite[..., None, None], flip, general)
+    return np.where(degenerate[..., None, None], eye, out)
 
 
 def forward_kinematics_np(

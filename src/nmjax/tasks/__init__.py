@@ -49,7 +49,6 @@ from nmjax.tasks.outputs import (
     write_retarget,
 )
 from nmjax.tasks.retarget import (
-    align_rotation,
     detect_target_joints,
     infer_rotations,
     infer_rotations_jit,
@@ -69,7 +68,6 @@ __all__ = [
     "RETARGET_FRAME",
     "Interpolators",
     "TaskClips",
-    "align_rotation",
     "detect_target_joints",
     "folder_kind",
     "generate_jit",

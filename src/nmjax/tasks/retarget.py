@@ -77,27 +77,6 @@ def retarget_joints(
     )
 
 
-def align_rotation(u: jax.Array, v: jax.Array) -> jax.Array:
-    """The smallest rotation taking unit vectors u to v: (..., 3), (..., 3) -> (..., 3, 3).
-
-    Rodrigues' formula about u x v; antiparallel inputs turn by pi about an axis normal to u.
-    """
-    u, v = geometry.normalize(u), geometry.normalize(v)
-    c = jnp.sum(u * v, axis=-1)[..., None, None]
-    axis = jnp.cross(u, v)
-    # For u = -v any axis normal to u works: u x e_x, or u x e_y when u is along x.
-    fallback = jnp.cross(u, jnp.where(jnp.abs(u[..., :1]) < 0.9, jnp.eye(3)[0], jnp.eye(3)[1]))
-    anti = (c[..., 0, 0] < -1.0 + 1e-6)[..., None]
-    axis = jnp.where(anti, geometry.normalize(fallback), axis)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = jnp.zeros_like(x)
-    skew = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*x.shape, 3, 3)
-    eye = jnp.eye(3)
-    general = eye + skew + skew @ skew / (1.0 + jnp.where(anti[..., None], 0.0, c))
-    flip = 2.0 * axis[..., :, None] * axis[..., None, :] - eye  # rotation by pi about `axis`
-    return jnp.where(anti[..., None], flip, general)
-
-
 def rest_rotations(
     joints: jax.Array,
     rotations: jax.Array,
@@ -123,7 +102,7 @@ def rest_rotations(
     par = np.asarray(parents)
     bones = joints - joints[par]
     predicted = jnp.einsum("kij,kj->ki", rotations, geometry.normalize(directions))
-    fix = align_rotation(predicted, bones)
+    fix = geometry.align_rotation(predicted, bones)
     is_root = jnp.asarray(par == np.arange(len(par)))[:, None, None]
     return jnp.where(is_root, rotations, fix @ rotations)
 

@@ -181,16 +181,21 @@ def test_bone_offsets():
     )
 
 
-@SETTINGS
-@given(k=st.sampled_from([1, 4, 9]), seed=st.integers(0, 999))
-def test_fk_random_trees(k, seed):
-    rng = np.random.default_rng(seed)
-    # Random tree on relabelled nodes: node i (i >= 1) hangs below a random earlier node.
+def random_tree(rng, k):
+    """(parents, order) of a random tree on relabelled nodes: node i (i >= 1) hangs below a random
+    earlier node, so the order is topological by construction, root first."""
     label = rng.permutation(k)
     parents = np.zeros(k, int)
     for i in range(k):
         parents[label[i]] = label[rng.integers(0, i)] if i else label[0]
-    order = label  # topological by construction, root first
+    return parents, label
+
+
+@SETTINGS
+@given(k=st.sampled_from([1, 4, 9]), seed=st.integers(0, 999))
+def test_fk_random_trees(k, seed):
+    rng = np.random.default_rng(seed)
+    parents, order = random_tree(rng, k)
     local = random_rotations(seed, k)
     offsets = rng.normal(size=(k, 3)).astype(np.float32)
     root = rng.normal(size=3).astype(np.float32)
@@ -236,3 +241,114 @@ def test_fk_gradient_compiles_with_several_batch_axes_and_vmap():
     gv = jax.jit(jax.vmap(jax.grad(lambda d: f(d).sum())))(d6)
     np.testing.assert_allclose(gv, g, atol=1e-5)
     assert np.all(np.isfinite(g))
+
+
+# --- the NumPy twins against their JAX functions ------------------------------------------------
+
+
+@SETTINGS
+@given(seed=st.integers(0, 999))
+def test_axis_angle_twin_matches_jax(seed):
+    rng = np.random.default_rng(seed)
+    w = rng.normal(scale=2.0, size=(4, 6, 3))
+    w[0, 0] = 0.0  # the zero rotation
+    w[0, 1] = [1e-7, 0.0, -2e-7]  # a tiny one
+    got = geo.axis_angle_to_matrix_np(w)
+    assert got.dtype == np.float64 and got.shape == (4, 6, 3, 3)
+    want = np.asarray(geo.axis_angle_to_matrix(jnp.asarray(w, jnp.float32)))
+    np.testing.assert_allclose(got, want, atol=2e-6)
+    np.testing.assert_array_equal(got[0, 0], np.eye(3))
+    # The (axis, angle) form: any axis length, any sign of the angle.
+    angle = rng.normal(scale=3.0, size=(4, 6))
+    axis = rng.normal(size=(4, 6, 3))
+    unit = axis / np.linalg.norm(axis, axis=-1, keepdims=True)
+    np.testing.assert_allclose(
+        geo.axis_angle_to_matrix_np(axis, angle),
+        geo.axis_angle_to_matrix_np(unit * angle[..., None]),
+        atol=1e-12,
+    )
+
+
+@SETTINGS
+@given(seed=st.integers(0, 999))
+def test_align_rotation_twin_matches_jax(seed):
+    rng = np.random.default_rng(seed)
+    u, v = rng.normal(size=(2, 3, 8, 3))
+    v[0, 0] = -3.0 * u[0, 0]  # antiparallel
+    v[0, 1] = 0.5 * u[0, 1]  # parallel
+    got = geo.align_rotation_np(u, v)
+    assert got.dtype == np.float64 and got.shape == (3, 8, 3, 3)
+    want = geo.align_rotation(jnp.asarray(u, jnp.float32), jnp.asarray(v, jnp.float32))
+    np.testing.assert_allclose(got, want, atol=2e-5)
+    turned = np.einsum("...ij,...j->...i", got, u / np.linalg.norm(u, axis=-1, keepdims=True))
+    np.testing.assert_allclose(turned, v / np.linalg.norm(v, axis=-1, keepdims=True), atol=1e-12)
+    # A zero vector on either side: the identity (the JAX function's too).
+    np.testing.assert_array_equal(geo.align_rotation_np(np.zeros(3), v[1, 2]), np.eye(3))
+    np.testing.assert_allclose(geo.align_rotation(jnp.zeros(3), jnp.ones(3)), np.eye(3))
+
+
+@SETTINGS
+@given(k=st.sampled_from([1, 5, 9]), seed=st.integers(0, 999), batch=st.sampled_from([(), (2, 3)]))
+def test_forward_kinematics_twin_matches_jax(k, seed, batch):
+    rng = np.random.default_rng(seed)
+    parents, order = random_tree(rng, k)
+    local = Rotation.random(int(np.prod(batch, dtype=int)) * k, random_state=seed).as_matrix()
+    local = local.reshape(*batch, k, 3, 3)
+    offsets = rng.normal(size=(*batch, k, 3))
+    root = rng.normal(size=(*batch, 3))
+    pos, glob = geo.forward_kinematics_np(root, local, offsets, parents, order)
+    jax_pos, jax_glob = geo.forward_kinematics_with_rotations(
+        *(jnp.asarray(a, jnp.float32) for a in (root, local, offsets)), parents, order
+    )
+    assert pos.shape == (*batch, k, 3) and glob.shape == (*batch, k, 3, 3)
+    np.testing.assert_allclose(pos, jax_pos, atol=1e-4)
+    np.testing.assert_allclose(glob, jax_glob, atol=1e-5)
+    # Offsets in the parent's frame: "own" offsets turned by each joint's local rotation first.
+    turned = np.einsum("...kij,...kj->...ki", local, offsets)
+    parent_pos, parent_glob = geo.forward_kinematics_np(
+        root, local, turned, parents, order, offset_frame="parent"
+    )
+    np.testing.assert_allclose(parent_pos, pos, atol=1e-12)
+    np.testing.assert_array_equal(parent_glob, glob)
+    if k > 1:  # the two frames differ when the offsets are not turned
+        other, _ = geo.forward_kinematics_np(
+            root, local, offsets, parents, order, offset_frame="parent"
+        )
+        assert not np.allclose(other, pos)
+
+
+def test_forward_kinematics_twin_refuses_bad_input():
+    eye = np.broadcast_to(np.eye(3), (5, 3, 3))
+    with pytest.raises(ValueError, match="topological"):
+        geo.forward_kinematics_np(np.zeros(3), eye, np.zeros((5, 3)), PARENTS, (0, 3, 1, 2, 4))
+    with pytest.raises(ValueError, match="offsets must be"):
+        geo.forward_kinematics_np(np.zeros(3), eye, np.zeros((4, 3)), PARENTS, ORDER)
+    with pytest.raises(ValueError, match="offset_frame"):
+        geo.forward_kinematics_np(
+            np.zeros(3), eye, np.zeros((5, 3)), PARENTS, ORDER, offset_frame="x"
+        )
+
+
+@SETTINGS
+@given(seed=st.integers(0, 999))
+def test_linear_blend_skinning_twin_matches_jax(seed):
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(size=(40, 3))
+    weights = rng.dirichlet(np.ones(4), size=40)
+    rotations = Rotation.random(2 * 3 * 4, random_state=seed).as_matrix().reshape(2, 3, 4, 3, 3)
+    translations = rng.normal(size=(2, 3, 4, 3))
+    got = geo.linear_blend_skinning_np(vertices, weights, rotations, translations)
+    want = geo.linear_blend_skinning(
+        *(jnp.asarray(a, jnp.float32) for a in (vertices, weights)),
+        rotations=jnp.asarray(rotations, jnp.float32),
+        translations=jnp.asarray(translations, jnp.float32),
+    )
+    assert got.shape == (2, 3, 40, 3)
+    np.testing.assert_allclose(got, want, atol=1e-5)
+    # Per-frame rest vertices (SMPL's pose blend shapes): each frame skins its own.
+    per_frame = vertices + rng.normal(scale=0.1, size=(2, 3, 40, 3))
+    batched = geo.linear_blend_skinning_np(per_frame, weights, rotations, translations)
+    one = geo.linear_blend_skinning_np(
+        per_frame[1, 2], weights, rotations[1, 2], translations[1, 2]
+    )
+    np.testing.assert_allclose(batched[1, 2], one, atol=1e-12)

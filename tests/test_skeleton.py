@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from nmjax import atomic, cli, losses
 from nmjax import keypoints as kp_lib
+from nmjax.geometry import linear_blend_skinning
 from nmjax.run_folder import pruned_skeleton
 from nmjax.skeleton import (
     Skeleton,
@@ -21,7 +22,6 @@ from nmjax.skeleton import (
     extract_skeleton,
     find_parents,
     influence,
-    linear_blend_skinning,
     load_skeleton,
     prune,
     skeleton_from_parents,

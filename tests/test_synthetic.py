@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
+import fnmatch
+import hashlib
 import json
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -146,7 +150,7 @@ def test_samples_lie_on_the_surface_area_uniformly(name):
     body = bodies.get_body(name)
     positions, rotations = synthetic.pose(body, np.zeros((1, len(body.dofs))), np.zeros((1, 3)))
     rng = np.random.default_rng(0)
-    points = synthetic.sample_surface(body, positions, rotations, 20000, rng)[0]
+    points = synthetic.sample_body_surface(body, positions, rotations, 20000, rng)[0]
     mesh = synthetic.rest_mesh(body)
     _, distance, _ = trimesh.proximity.closest_point(mesh, points[:2000])
     assert distance.max() < 1e-5
@@ -285,3 +289,43 @@ def test_ensure_dataset_resolves_the_default_root_and_leaves_real_sets_alone(tmp
     assert not (tmp_path / "dfaust").exists()  # real sets come from `nmjax prepare-data --from`
     with pytest.raises(ValueError, match="valid names"):
         synthetic.ensure_dataset("synth-snake")
+
+
+# Computed from the bodies when their tables were Python code (before bodies.json): a digest of
+# every value of the four bodies, and the sums of a generated sequence of each.
+TABLES_SHA256 = "fad8cf67940394573b4a431cdfd35bb10114fcf2fadb3e9afa83ce39173a26cb"
+GENERATED_SUMS = {  # simulate(name, 7, points=300, rng=5): vertices, joints, angles
+    "synth-hand": (580.7990321738671, 44.79214786470402, 76.99095349456184),
+    "synth-arm": (1014.2072831490186, 61.05870482089813, 6.1869245887501165),
+    "synth-human": (1279.3248998016752, 74.85726693442848, 46.281036577755),
+    "synth-quadruped": (1104.5729627907067, 66.75805660162587, 19.877130744498572),
+}
+
+
+def test_the_shipped_tables_are_the_bodies_the_code_held():
+    values = repr([dataclasses.astuple(body) for body in bodies.BODIES.values()])
+    assert hashlib.sha256(values.encode()).hexdigest() == TABLES_SHA256
+    assert list(bodies.BODIES) == list(GENERATED_SUMS)
+    for name, sums in GENERATED_SUMS.items():
+        seq = synthetic.simulate(name, 7, points=300, rng=5)
+        got = [np.asarray(a, np.float64).sum() for a in (seq.vertices, seq.joints, seq.angles)]
+        np.testing.assert_allclose(got, sums, rtol=1e-6, err_msg=name)
+
+
+def test_the_tables_ship_with_the_package():
+    pyproject = Path(__file__).parents[1] / "pyproject.toml"
+    globs = tomllib.loads(pyproject.read_text())["tool"]["setuptools"]["package-data"]
+    assert any(fnmatch.fnmatch(bodies.BODIES_FILE, g) for g in globs["nmjax.data"])
+
+
+def test_a_malformed_table_is_named():
+    text = (Path(bodies.__file__).parent / bodies.BODIES_FILE).read_text()
+    tables = json.loads(text)
+    assert bodies.read_bodies(text) == bodies.BODIES
+    del tables["bodies"]["synth-arm"]["joints"][1]["offset"]
+    with pytest.raises(ValueError, match="bodies.json: body 'synth-arm' has a malformed entry"):
+        bodies.read_bodies(json.dumps(tables))
+    tables = json.loads(text)
+    tables["bodies"]["synth-hand"]["joints"][2]["parent"] = "nowhere"
+    with pytest.raises(ValueError, match="synth-hand: parent 'nowhere'"):
+        bodies.read_bodies(json.dumps(tables))

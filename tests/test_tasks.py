@@ -226,7 +226,7 @@ def test_align_rotation_maps_u_onto_v_including_antiparallel():
     v = rng.normal(size=(6, 3))
     v[0] = -u[0]  # antiparallel
     v[1] = 2 * u[1]  # parallel
-    r = np.asarray(tasks.align_rotation(jnp.asarray(u), jnp.asarray(v)), np.float64)
+    r = np.asarray(geometry.align_rotation(jnp.asarray(u), jnp.asarray(v)), np.float64)
     unit = lambda x: x / np.linalg.norm(x, axis=-1, keepdims=True)  # noqa: E731
     np.testing.assert_allclose(np.einsum("kij,kj->ki", r, unit(u)), unit(v), atol=1e-5)
     np.testing.assert_allclose(

@@ -2,8 +2,8 @@
 
 Runs between the phases on the learned affinity, in NumPy/SciPy: the result is a kinematic tree
 over all K keypoints (`Skeleton`), written as `skeleton.json` into the phase-1 run folder. The
-skinning half (`skin_weights`, `linear_blend_skinning`) deforms a target mesh with joint
-transforms for retargeting.
+skinning half (`skin_weights`, Algorithm 2) binds a target mesh to the tree for retargeting; the
+skinning itself is `nmjax.geometry.linear_blend_skinning`.
 """
 
 from __future__ import annotations
@@ -14,7 +14,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 from scipy.sparse import csgraph
 
@@ -609,42 +608,3 @@ def skin_weights(
     np.add.at(weights, (rows, parent), 1.0 - w_child)
     np.add.at(weights, (rows, child), w_child)
     return weights.astype(np.float32)
-
-
-def linear_blend_skinning(
-    vertices: Any,
-    weights: Any,
-    transforms: Any = None,
-    *,
-    rotations: Any = None,
-    translations: Any = None,
-) -> jnp.ndarray:
-    """Linear blend skinning v' = sum_k w_vk (R_k v + t_k) (appendix A.4).
-
-    Give either `transforms` (..., K, 4, 4) homogeneous joint transforms, or `rotations`
-    (..., K, 3, 3) and `translations` (..., K, 3). Works under jit / vmap / grad.
-
-    Args:
-      vertices: (V, 3) rest-pose vertices.
-      weights: (V, K) skin weights.
-
-    Returns:
-      (..., V, 3) deformed vertices.
-    """
-    if (transforms is None) == (rotations is None and translations is None):
-        raise ValueError("give either transforms or both rotations and translations")
-    if transforms is not None:
-        transforms = jnp.asarray(transforms)
-        rotations, translations = transforms[..., :3, :3], transforms[..., :3, 3]
-    elif rotations is None or translations is None:
-        raise ValueError("rotations and translations must be given together")
-    v = jnp.asarray(vertices)
-    w = jnp.asarray(weights)
-    rotations, translations = jnp.asarray(rotations), jnp.asarray(translations)
-    if v.ndim != 2 or v.shape[-1] != 3 or w.shape != (v.shape[0], rotations.shape[-3]):
-        raise ValueError(
-            f"vertices (V, 3) and weights (V, K) must match the K={rotations.shape[-3]} "
-            f"transforms; got {v.shape} and {w.shape}"
-        )
-    per_joint = jnp.einsum("...kij,vj->...kvi", rotations, v) + translations[..., :, None, :]
-    return jnp.einsum("vk,...kvi->...vi", w, per_joint)

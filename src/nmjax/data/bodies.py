@@ -4,21 +4,27 @@ A body is a tree of joints; each joint owns a few degrees of freedom (with limit
 members share a random signal) and a few rigid links (trimesh capsules, cylinders and boxes) given
 in its local frame. `nmjax.data.synthetic` moves, poses and samples them.
 
-Four bodies live in `BODIES`: `synth-hand` (palm and five three-segment fingers, 21 joints; curl
-and spread), `synth-arm` (a Panda-like arm with 7 revolute joints and a two-finger gripper),
-`synth-human` (19 joints, limb motion with a gait-like coupling plus root translation) and
-`synth-quadruped` (25 joints, trotting legs, neck, wagging tail, root translation). Units are
-arbitrary; every body is about one unit across, with z up.
+The tables are the data file bodies.json shipped with the package (its "about" entries say the
+units and what each body is), read once into `BODIES` (`read_bodies`): `synth-hand` (palm and
+five three-segment fingers, 21 joints; curl and spread), `synth-arm` (a Panda-like arm with 7
+revolute joints and a two-finger gripper), `synth-human` (19 joints, limb motion with a
+gait-like coupling plus root translation) and `synth-quadruped` (25 joints, trotting legs, neck,
+wagging tail, root translation). Units are arbitrary; every body is about one unit across, with
+z up.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
+from importlib import resources
+from typing import Any
 
 import numpy as np
 import trimesh
 
-DEG = np.pi / 180.0
+DEG = np.pi / 180.0  # the file's angles are degrees
+BODIES_FILE = "bodies.json"  # in the package nmjax.data
 
 # --------------------------------------------------------------------------------------------
 # Body description
@@ -166,459 +172,79 @@ def _check_body(body: Body) -> Body:
 
 
 # --------------------------------------------------------------------------------------------
-# The four bodies
+# The tables (bodies.json)
 
 
-def _hand() -> Body:
-    """Palm facing -z, fingers along +x, thumb on the +y side; flexion bends towards -z."""
-    y_axis, z_axis = (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    joints = [
-        Joint(
-            "wrist",
-            None,
-            (0.0, 0.0, 0.0),
-            0.05,
-            dofs=(
-                Dof(z_axis, -20 * DEG, 20 * DEG),  # radial / ulnar deviation
-                Dof(y_axis, -35 * DEG, 35 * DEG),  # flexion / extension
-                Dof((1.0, 0.0, 0.0), -30 * DEG, 30 * DEG),  # pronation / supination
-            ),
-            links=(Link("box", (0.175, 0.0, 0.0), (0.35, 0.34, 0.1)),),
-        )
-    ]
-    # name, knuckle y, segment lengths, radius, coupling to the hand's spread signal
-    fingers = (
-        ("index", 0.12, (0.19, 0.12, 0.09), 0.034, 0.8),
-        ("middle", 0.04, (0.21, 0.13, 0.10), 0.035, 0.0),
-        ("ring", -0.04, (0.20, 0.125, 0.095), 0.033, -0.6),
-        ("pinky", -0.12, (0.16, 0.10, 0.08), 0.030, -0.8),
+def _vector(value: Any) -> tuple[float, float, float]:
+    x, y, z = value
+    return (float(x), float(y), float(z))
+
+
+def _dof(entry: dict[str, Any]) -> Dof:
+    kind = entry.get("kind", "rotate")
+    lower, upper = entry["limits"]
+    if kind == "rotate":  # degrees in the file
+        lower, upper = lower * DEG, upper * DEG
+    return Dof(
+        _vector(entry["axis"]),
+        float(lower),
+        float(upper),
+        kind=kind,
+        group=entry.get("group"),
+        coupling=float(entry.get("coupling", 0.0)),
     )
-    for name, y, (l1, l2, l3), r, spread in fingers:
-        curl = f"{name}_curl"
-        joints += [
-            Joint(
-                f"{name}1",
-                "wrist",
-                (0.35, y, 0.0),
-                r,
-                dofs=(
-                    Dof(
-                        z_axis,
-                        -15 * DEG,
-                        15 * DEG,
-                        group="spread" if spread else None,
-                        coupling=spread,
-                    ),
-                    Dof(y_axis, -15 * DEG, 85 * DEG, group=curl, coupling=0.75),
-                ),
-                links=(Link("capsule", (0.0, 0.0, 0.0), (l1, 0.0, 0.0), r),),
-            ),
-            Joint(
-                f"{name}2",
-                f"{name}1",
-                (l1, 0.0, 0.0),
-                r,
-                dofs=(Dof(y_axis, 0.0, 100 * DEG, group=curl, coupling=0.75),),
-                links=(Link("capsule", (0.0, 0.0, 0.0), (l2, 0.0, 0.0), 0.95 * r),),
-            ),
-            Joint(
-                f"{name}3",
-                f"{name}2",
-                (l2, 0.0, 0.0),
-                0.95 * r,
-                dofs=(Dof(y_axis, 0.0, 80 * DEG, group=curl, coupling=0.85),),
-                links=(Link("capsule", (0.0, 0.0, 0.0), (l3, 0.0, 0.0), 0.9 * r),),
-            ),
-            Joint(f"{name}_tip", f"{name}3", (l3, 0.0, 0.0), 0.9 * r),
-        ]
-    # The thumb leaves the palm diagonally, rolled towards the palm side.
-    joints[1:1] = [
-        Joint(
-            "thumb1",
-            "wrist",
-            (0.07, 0.15, -0.02),
-            0.04,
-            dofs=(
-                Dof(z_axis, -15 * DEG, 25 * DEG, group="spread", coupling=0.5),
-                Dof(y_axis, -10 * DEG, 50 * DEG, group="thumb_curl", coupling=0.7),
-            ),
-            links=(Link("capsule", (0.0, 0.0, 0.0), (0.15, 0.0, 0.0), 0.04),),
-            rest=(-35 * DEG, 0.0, 50 * DEG),
-        ),
-        Joint(
-            "thumb2",
-            "thumb1",
-            (0.15, 0.0, 0.0),
-            0.04,
-            dofs=(Dof(y_axis, 0.0, 55 * DEG, group="thumb_curl", coupling=0.7),),
-            links=(Link("capsule", (0.0, 0.0, 0.0), (0.11, 0.0, 0.0), 0.037),),
-        ),
-        Joint(
-            "thumb3",
-            "thumb2",
-            (0.11, 0.0, 0.0),
-            0.037,
-            dofs=(Dof(y_axis, 0.0, 80 * DEG, group="thumb_curl", coupling=0.8),),
-            links=(Link("capsule", (0.0, 0.0, 0.0), (0.09, 0.0, 0.0), 0.034),),
-        ),
-        Joint("thumb_tip", "thumb3", (0.09, 0.0, 0.0), 0.034),
-    ]
-    return Body("synth-hand", tuple(joints), period=(40.0, 120.0))
 
 
-def _arm() -> Body:
-    """A Panda-like arm standing on the origin: alternating z / y axes, a flange and a gripper."""
-    y_axis, z_axis = (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    o = (0.0, 0.0, 0.0)
-
-    def seg(end: tuple[float, float, float], r: float) -> tuple[Link, ...]:
-        return (Link("capsule", o, end, r),)
-
-    joints = [
-        Joint(
-            "base",
-            None,
-            o,
-            0.08,
-            links=(
-                Link("cylinder", o, (0.0, 0.0, 0.06), 0.12),
-                Link("capsule", o, (0.0, 0.0, 0.25), 0.075),
-            ),
+def _joint(entry: dict[str, Any]) -> Joint:
+    return Joint(
+        entry["name"],
+        entry["parent"],
+        _vector(entry["offset"]),
+        float(entry["radius"]),
+        dofs=tuple(_dof(d) for d in entry.get("dofs", ())),
+        links=tuple(
+            Link(
+                link["shape"], _vector(link["a"]), _vector(link["b"]), float(link.get("radius", 0))
+            )
+            for link in entry.get("links", ())
         ),
-        Joint(
-            "joint1",
-            "base",
-            (0.0, 0.0, 0.25),
-            0.075,
-            (Dof(z_axis, -90 * DEG, 90 * DEG),),
-            seg((0.0, 0.0, 0.1), 0.07),
-        ),
-        Joint(
-            "joint2",
-            "joint1",
-            (0.0, 0.0, 0.1),
-            0.07,
-            (Dof(y_axis, -50 * DEG, 50 * DEG),),
-            seg((0.0, 0.0, 0.28), 0.065),
-        ),
-        Joint(
-            "joint3",
-            "joint2",
-            (0.0, 0.0, 0.28),
-            0.065,
-            (Dof(z_axis, -70 * DEG, 70 * DEG),),
-            seg((0.07, 0.0, 0.1), 0.06),
-        ),
-        Joint(
-            "joint4",
-            "joint3",
-            (0.07, 0.0, 0.1),
-            0.06,
-            (Dof(y_axis, 20 * DEG, 120 * DEG),),
-            seg((-0.07, 0.0, 0.1), 0.06),
-        ),
-        Joint(
-            "joint5",
-            "joint4",
-            (-0.07, 0.0, 0.1),
-            0.06,
-            (Dof(z_axis, -80 * DEG, 80 * DEG),),
-            seg((0.0, 0.0, 0.24), 0.055),
-        ),
-        Joint(
-            "joint6",
-            "joint5",
-            (0.0, 0.0, 0.24),
-            0.055,
-            (Dof(y_axis, -20 * DEG, 110 * DEG),),
-            seg((0.08, 0.0, 0.0), 0.05),
-        ),
-        Joint(
-            "joint7",
-            "joint6",
-            (0.08, 0.0, 0.0),
-            0.05,
-            (Dof((0.0, 0.0, -1.0), -90 * DEG, 90 * DEG),),
-            seg((0.0, 0.0, -0.08), 0.045),
-        ),
-        Joint(
-            "hand",
-            "joint7",
-            (0.0, 0.0, -0.1),
-            0.04,
-            links=(Link("box", (0.0, 0.0, -0.03), (0.06, 0.2, 0.06)),),
-        ),
-    ]
-    for side, sign in (("left", 1.0), ("right", -1.0)):
-        finger = Link("box", (0.0, 0.0, -0.035), (0.035, 0.03, 0.07))
-        joints += [
-            Joint(
-                f"finger_{side}",
-                "hand",
-                (0.0, sign * 0.025, -0.06),
-                0.03,
-                (Dof((0.0, sign, 0.0), 0.0, 0.045, kind="slide", group="grip", coupling=1.0),),
-                (finger,),
-            ),
-            Joint(f"fingertip_{side}", f"finger_{side}", (0.0, 0.0, -0.07), 0.03),
-        ]
-    return Body("synth-arm", tuple(joints), period=(50.0, 120.0))
+        rest=_vector(np.multiply(entry.get("rest", (0, 0, 0)), DEG)),
+    )
 
 
-def _human() -> Body:
-    """A standing figure about 1.1 units tall: x forward, y to its left, z up."""
-    x_axis, y_axis, z_axis = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    forward = (0.0, -1.0, 0.0)  # rotating a downward limb about -y swings it forwards
-    o = (0.0, 0.0, 0.0)
-    joints = [
-        Joint(
-            "pelvis",
-            None,
-            (0.0, 0.0, 0.5),
-            0.06,
-            (
-                Dof(z_axis, -60 * DEG, 60 * DEG),
-                Dof(y_axis, -10 * DEG, 10 * DEG),
-                Dof(x_axis, -8 * DEG, 8 * DEG),
-            ),
-            (Link("box", o, (0.12, 0.22, 0.1)),),
-        ),
-        Joint(
-            "spine",
-            "pelvis",
-            (0.0, 0.0, 0.08),
-            0.06,
-            (
-                Dof(y_axis, -15 * DEG, 30 * DEG),
-                Dof(x_axis, -15 * DEG, 15 * DEG),
-                Dof(z_axis, -25 * DEG, 25 * DEG),
-            ),
-            (Link("capsule", o, (0.0, 0.0, 0.14), 0.06),),
-        ),
-        Joint(
-            "chest",
-            "spine",
-            (0.0, 0.0, 0.14),
-            0.07,
-            (Dof(y_axis, -10 * DEG, 20 * DEG), Dof(z_axis, -20 * DEG, 20 * DEG)),
-            (Link("box", (0.0, 0.0, 0.08), (0.13, 0.28, 0.16)),),
-        ),
-        Joint(
-            "neck",
-            "chest",
-            (0.0, 0.0, 0.17),
-            0.04,
-            (Dof(y_axis, -20 * DEG, 35 * DEG), Dof(z_axis, -40 * DEG, 40 * DEG)),
-            (Link("capsule", o, (0.0, 0.0, 0.06), 0.035),),
-        ),
-        Joint(
-            "head",
-            "neck",
-            (0.0, 0.0, 0.07),
-            0.06,
-            links=(Link("capsule", (0.0, 0.0, 0.04), (0.0, 0.0, 0.09), 0.06),),
-        ),
-    ]
-    for side, s in (("l", 1.0), ("r", -1.0)):
-        joints += [
-            Joint(
-                f"{side}_shoulder",
-                "chest",
-                (0.0, s * 0.17, 0.13),
-                0.04,
-                (
-                    Dof(forward, -60 * DEG, 80 * DEG, group="gait", coupling=-0.6 * s),
-                    Dof((s, 0.0, 0.0), 0.0, 90 * DEG),
-                    Dof(z_axis, -30 * DEG, 30 * DEG),
-                ),
-                (Link("capsule", o, (0.0, 0.0, -0.17), 0.035),),
-            ),
-            Joint(
-                f"{side}_elbow",
-                f"{side}_shoulder",
-                (0.0, 0.0, -0.17),
-                0.035,
-                (Dof(forward, 0.0, 120 * DEG),),
-                (Link("capsule", o, (0.0, 0.0, -0.15), 0.03),),
-            ),
-            Joint(
-                f"{side}_wrist",
-                f"{side}_elbow",
-                (0.0, 0.0, -0.15),
-                0.03,
-                links=(Link("capsule", o, (0.0, 0.0, -0.06), 0.03),),
-            ),
-        ]
-    for side, s in (("l", 1.0), ("r", -1.0)):
-        joints += [
-            Joint(
-                f"{side}_hip",
-                "pelvis",
-                (0.0, s * 0.08, -0.05),
-                0.05,
-                (
-                    Dof(forward, -30 * DEG, 50 * DEG, group="gait", coupling=0.8 * s),
-                    Dof((s, 0.0, 0.0), -10 * DEG, 25 * DEG),
-                    Dof(z_axis, -20 * DEG, 20 * DEG),
-                ),
-                (Link("capsule", o, (0.0, 0.0, -0.22), 0.05),),
-            ),
-            Joint(
-                f"{side}_knee",
-                f"{side}_hip",
-                (0.0, 0.0, -0.22),
-                0.045,
-                (Dof(y_axis, 0.0, 100 * DEG),),
-                (Link("capsule", o, (0.0, 0.0, -0.2), 0.04),),
-            ),
-            Joint(
-                f"{side}_ankle",
-                f"{side}_knee",
-                (0.0, 0.0, -0.2),
-                0.04,
-                (Dof(y_axis, -25 * DEG, 25 * DEG),),
-                (Link("box", (0.035, 0.0, -0.025), (0.13, 0.06, 0.05)),),
-            ),
-            Joint(f"{side}_toe", f"{side}_ankle", (0.1, 0.0, -0.04), 0.03),
-        ]
+def _body(name: str, entry: dict[str, Any]) -> Body:
+    low, high = entry["frames"]
     return Body(
-        "synth-human", tuple(joints), period=(30.0, 80.0), speed=0.008, wander=(0.05, 0.05, 0.02)
+        name,
+        tuple(_joint(j) for j in entry["joints"]),
+        period=(float(entry["period"][0]), float(entry["period"][1])),
+        speed=float(entry["speed"]),
+        wander=_vector(entry["wander"]),
+        frames=(int(low), int(high)),
+        num_sequences=int(entry["num_sequences"]),
     )
 
 
-def _quadruped() -> Body:
-    """A dog-like body about 1.2 units long: x forward, y to its left, z up."""
-    x_axis, y_axis, z_axis = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    forward, backward = (0.0, -1.0, 0.0), (0.0, 1.0, 0.0)
-    o = (0.0, 0.0, 0.0)
-    joints = [
-        Joint(
-            "torso",
-            None,
-            (0.0, 0.0, 0.45),
-            0.11,
-            (
-                Dof(z_axis, -45 * DEG, 45 * DEG),
-                Dof(y_axis, -8 * DEG, 8 * DEG),
-                Dof(x_axis, -6 * DEG, 6 * DEG),
-            ),
-            (Link("capsule", (-0.25, 0.0, 0.0), (0.25, 0.0, 0.0), 0.11),),
-        ),
-        Joint(
-            "withers",
-            "torso",
-            (0.25, 0.0, 0.0),
-            0.11,
-            (Dof(y_axis, -10 * DEG, 10 * DEG), Dof(z_axis, -15 * DEG, 15 * DEG)),
-            (Link("capsule", o, (0.08, 0.0, 0.0), 0.11),),
-        ),
-        Joint(
-            "hips",
-            "torso",
-            (-0.25, 0.0, 0.0),
-            0.1,
-            (Dof(y_axis, -10 * DEG, 10 * DEG), Dof(z_axis, -12 * DEG, 12 * DEG)),
-            (Link("capsule", o, (-0.06, 0.0, 0.0), 0.1),),
-        ),
-        Joint(
-            "neck",
-            "withers",
-            (0.1, 0.0, 0.05),
-            0.06,
-            (Dof(y_axis, -25 * DEG, 25 * DEG), Dof(z_axis, -35 * DEG, 35 * DEG)),
-            (Link("capsule", o, (0.2, 0.0, 0.0), 0.06),),
-            rest=(0.0, -50 * DEG, 0.0),
-        ),
-        Joint(
-            "head",
-            "neck",
-            (0.2, 0.0, 0.0),
-            0.075,
-            (Dof(y_axis, -20 * DEG, 20 * DEG),),
-            (
-                Link("capsule", o, (0.06, 0.0, 0.0), 0.075),
-                Link("capsule", (0.06, 0.0, 0.0), (0.16, 0.0, 0.0), 0.045),
-            ),
-            rest=(0.0, 60 * DEG, 0.0),
-        ),
-        Joint("nose", "head", (0.16, 0.0, 0.0), 0.045),
-        Joint(
-            "tail1",
-            "hips",
-            (-0.08, 0.0, 0.04),
-            0.035,
-            (
-                Dof(z_axis, -40 * DEG, 40 * DEG, group="wag", coupling=0.8),
-                Dof(y_axis, -20 * DEG, 20 * DEG),
-            ),
-            (Link("capsule", o, (-0.15, 0.0, 0.0), 0.03),),
-            rest=(0.0, 30 * DEG, 0.0),
-        ),
-        Joint(
-            "tail2",
-            "tail1",
-            (-0.15, 0.0, 0.0),
-            0.03,
-            (
-                Dof(z_axis, -40 * DEG, 40 * DEG, group="wag", coupling=0.8),
-                Dof(y_axis, -20 * DEG, 20 * DEG),
-            ),
-            (Link("capsule", o, (-0.13, 0.0, 0.0), 0.025),),
-        ),
-        Joint("tail_tip", "tail2", (-0.13, 0.0, 0.0), 0.025),
-    ]
-    # Trot: diagonal legs swing together (front-left with hind-right).
-    for leg, parent, x, s, trot in (
-        ("fl", "withers", 0.02, 1.0, 0.8),
-        ("fr", "withers", 0.02, -1.0, -0.8),
-        ("hl", "hips", 0.0, 1.0, -0.8),
-        ("hr", "hips", 0.0, -1.0, 0.8),
-    ):
-        front = leg[0] == "f"
-        names = ("shoulder", "elbow", "wrist") if front else ("hip", "knee", "hock")
-        upper, middle, lower = (f"{leg}_{n}" for n in names)
-        joints += [
-            Joint(
-                upper,
-                parent,
-                (x, s * 0.08, -0.06),
-                0.05,
-                (
-                    Dof(forward, -35 * DEG, 35 * DEG, group="trot", coupling=trot),
-                    Dof((s, 0.0, 0.0), -10 * DEG, 10 * DEG),
-                ),
-                (Link("capsule", o, (0.0, 0.0, -0.17), 0.045),),
-            ),
-            Joint(
-                middle,
-                upper,
-                (0.0, 0.0, -0.17),
-                0.04,
-                (Dof(backward if front else forward, 0.0, 60 * DEG if front else 50 * DEG),),
-                (Link("capsule", o, (0.0, 0.0, -0.15), 0.035),),
-            ),
-            Joint(
-                lower,
-                middle,
-                (0.0, 0.0, -0.15),
-                0.035,
-                (Dof(forward if front else backward, -10 * DEG if front else 0.0, 30 * DEG),),
-                (Link("capsule", o, (0.04, 0.0, -0.06), 0.03),),
-            ),
-            Joint(f"{leg}_paw", lower, (0.04, 0.0, -0.06), 0.03),
-        ]
-    return Body(
-        "synth-quadruped",
-        tuple(joints),
-        period=(30.0, 80.0),
-        speed=0.005,
-        wander=(0.04, 0.04, 0.015),
-    )
+def read_bodies(text: str | None = None) -> dict[str, Body]:
+    """The bodies of bodies.json (or of `text`, the same form), checked.
+
+    Raises:
+      ValueError: an entry that is missing a field or breaks the tree's rules, naming the body.
+    """
+    if text is None:
+        text = resources.files("nmjax.data").joinpath(BODIES_FILE).read_text(encoding="utf-8")
+    bodies = {}
+    for name, entry in json.loads(text)["bodies"].items():
+        try:
+            bodies[name] = _check_body(_body(name, entry))
+        except (KeyError, TypeError) as err:
+            raise ValueError(
+                f"{BODIES_FILE}: body {name!r} has a malformed entry ({err!r})"
+            ) from err
+    return bodies
 
 
-BODIES: dict[str, Body] = {
-    b.name: _check_body(b) for b in (_hand(), _arm(), _human(), _quadruped())
-}
+BODIES: dict[str, Body] = read_bodies()
 
 
 def get_body(name: str) -> Body:

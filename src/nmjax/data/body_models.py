@@ -10,21 +10,22 @@ al. 2017, which reuses it with 16 hand joints):
     v        = sum_k w_k G_k [I | -J_k] v_posed + trans           linear blend skinning
 
 R_k is the rotation of joint k's axis-angle pose; vec flattens each 3x3 matrix row by row, joint
-after joint, the order `posedirs` was learned in. Rotations act on column vectors.
+after joint, the order `posedirs` was learned in. Rotations act on column vectors. The rotations,
+the chain and the skinning are `nmjax.geometry`'s NumPy twins.
 
 Model files are read as their owners ship them (`load_model`): the official `.pkl` files (SMPL
 1.1.0 for Python, MANO 1.2 `MANO_RIGHT.pkl`; Python 2 pickles whose arrays are partly chumpy
 objects and whose `J_regressor` is a scipy sparse matrix) and `.npz` conversions with the same
 keys. chumpy does not import on current NumPy, and unpickling may run code, so `.pkl` files go
-through `restricted_load`: it rebuilds NumPy arrays, dtypes and scalars, scipy's compressed sparse
-matrices and chumpy arrays (as the NumPy array they hold) and refuses every other class, naming
-it. The same reader opens other array pickles (AIST++ motion files).
+through `restricted_load` (`nmjax.data.restricted_pickle` with this module's allow-list): it
+rebuilds NumPy arrays, dtypes and scalars, scipy's compressed sparse matrices and chumpy arrays
+(as the NumPy array they hold) and refuses every other class, naming it. The same reader opens
+other array pickles (AIST++ motion files).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import os
 import pickle
 from pathlib import Path
@@ -32,6 +33,8 @@ from typing import Any, BinaryIO
 
 import numpy as np
 
+from nmjax import geometry
+from nmjax.data.restricted_pickle import RefusedGlobal, RestrictedUnpickler
 from nmjax.parents import parents_from_external
 
 # Joint counts of the two models; a file with another count is neither.
@@ -70,7 +73,7 @@ SMPL_JOINT_NAMES = (
 MODEL_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "kintree_table", "weights", "f")
 
 
-# --- the restricted unpickler --------------------------------------------------------------------
+# --- what a model file's pickle may hold ---------------------------------------------------------
 
 
 class _ChumpyArray:
@@ -187,17 +190,15 @@ _ALLOWED: dict[tuple[str, str], Any] = {
 _chumpy_classes: dict[str, type] = {}
 
 
-class _RestrictedUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str) -> Any:
-        if (module, name) in _ALLOWED:
-            return _ALLOWED[module, name]
-        if module == "chumpy" or module.startswith("chumpy."):
-            # One inert stand-in per chumpy class; none of chumpy's code exists or runs here.
-            source = f"{module}.{name}"
-            if source not in _chumpy_classes:
-                _chumpy_classes[source] = type(name, (_ChumpyArray,), {"source": source})
-            return _chumpy_classes[source]
-        raise pickle.UnpicklingError(f"holds a pickled {module}.{name}")
+def _chumpy_class(module: str, name: str) -> type | None:
+    """One inert stand-in per chumpy class (None for any other module); none of chumpy's code
+    exists or runs here."""
+    if module != "chumpy" and not module.startswith("chumpy."):
+        return None
+    source = f"{module}.{name}"
+    if source not in _chumpy_classes:
+        _chumpy_classes[source] = type(name, (_ChumpyArray,), {"source": source})
+    return _chumpy_classes[source]
 
 
 def _sparse_to_dense(matrix: _SparseMatrix) -> np.ndarray:
@@ -242,15 +243,14 @@ def restricted_load(file: BinaryIO | bytes, where: str | os.PathLike) -> Any:
     Raises:
       ValueError: one line naming `where` and, for a refused class, the class.
     """
-    stream = io.BytesIO(file) if isinstance(file, bytes) else file
     try:
-        obj = _RestrictedUnpickler(stream, encoding="latin1").load()
+        obj = RestrictedUnpickler(file, _ALLOWED, other=_chumpy_class, encoding="latin1").load()
+    except RefusedGlobal as err:
+        raise ValueError(
+            f"{where}: holds a pickled {err}; refused, a model or motion file holds only arrays, "
+            "and nmjax loads no other class from a pickle (it could run code)"
+        ) from err
     except pickle.UnpicklingError as err:
-        if str(err).startswith("holds a pickled "):
-            raise ValueError(
-                f"{where}: {err}; refused, a model or motion file holds only arrays, and nmjax "
-                "loads no other class from a pickle (it could run code)"
-            ) from err
         raise ValueError(f"{where}: not a readable pickle ({err})") from err
     except (EOFError, TypeError, ValueError, AttributeError, IndexError, KeyError) as err:
         raise ValueError(f"{where}: not a readable pickle ({type(err).__name__}: {err})") from err
@@ -449,15 +449,6 @@ def require_kind(model: BodyModel, kind: str, user: str, where_to_get: str) -> N
 # --- the forward pass ----------------------------------------------------------------------------
 
 
-def axis_angle_to_matrix(axis_angle: np.ndarray) -> np.ndarray:
-    """Rodrigues' formula: (..., 3) axis-angle (axis times angle in radians) -> (..., 3, 3)."""
-    from scipy.spatial.transform import Rotation
-
-    axis_angle = np.asarray(axis_angle, dtype=np.float64)
-    flat = Rotation.from_rotvec(axis_angle.reshape(-1, 3)).as_matrix()
-    return flat.reshape(*axis_angle.shape[:-1], 3, 3)
-
-
 def shape_blend(v_template: np.ndarray, shapedirs: np.ndarray, betas: np.ndarray) -> np.ndarray:
     """Rest-pose vertices of shape `betas`: v_template + shapedirs . betas.
 
@@ -502,62 +493,6 @@ def pose_blend(posedirs: np.ndarray, rotations: np.ndarray) -> np.ndarray:
     return offsets.reshape(*features.shape[:-1], *posedirs.shape[:2])
 
 
-def chain_transforms(rotations: np.ndarray, joints: np.ndarray, parents: np.ndarray) -> np.ndarray:
-    """World transforms of the joints: G_k = G_parent(k) [R_k | J_k - J_parent(k)], G_root =
-    [R_root | J_root].
-
-    G_k maps joint k's local frame, placed at its rest position, to the world; its translation is
-    the posed position of joint k.
-
-    Args:
-      rotations: (..., K, 3, 3) local rotations.
-      joints: (..., K, 3) rest-pose joint positions.
-      parents: (K,) parent indices, the root its own parent.
-
-    Returns:
-      (..., K, 4, 4).
-    """
-    batch = rotations.shape[:-3]
-    num = parents.shape[0]
-    local = np.zeros((*batch, num, 4, 4))
-    local[..., :3, :3] = rotations
-    offsets = joints.copy()
-    has_parent = parents != np.arange(num)
-    offsets[..., has_parent, :] -= joints[..., parents[has_parent], :]
-    local[..., :3, 3] = offsets
-    local[..., 3, 3] = 1.0
-    world = np.empty_like(local)
-    for joint in chain_order(parents):
-        parent = parents[joint]
-        own = local[..., joint, :, :]
-        world[..., joint, :, :] = own if parent == joint else world[..., parent, :, :] @ own
-    return world
-
-
-def skin(
-    vertices: np.ndarray, weights: np.ndarray, transforms: np.ndarray, joints: np.ndarray
-) -> np.ndarray:
-    """Linear blend skinning: v' = sum_k w_k G_k [I | -J_k] v.
-
-    Args:
-      vertices: (..., V, 3) rest-pose vertices (after the blend shapes).
-      weights: (V, K) skinning weights.
-      transforms: (..., K, 4, 4) world transforms G_k from `chain_transforms`.
-      joints: (..., K, 3) the rest-pose joints the transforms were built on.
-
-    Returns:
-      (..., V, 3) posed vertices.
-    """
-    rotation = transforms[..., :3, :3]
-    # G_k [I | -J_k] keeps G_k's rotation and moves its translation by -R_k J_k.
-    translation = transforms[..., :3, 3] - (rotation @ joints[..., None])[..., 0]
-    per_joint = np.concatenate([rotation, translation[..., None]], axis=-1)  # (..., K, 3, 4)
-    # Blend the joints' [R | t] per vertex as one matrix product (BLAS): (V, K) @ (..., K, 12).
-    blended = weights @ per_joint.reshape(*per_joint.shape[:-2], 12)
-    blended = blended.reshape(*blended.shape[:-1], 3, 4)
-    return (blended[..., :3] @ vertices[..., None])[..., 0] + blended[..., 3]
-
-
 def pose_model(
     model: BodyModel,
     pose: np.ndarray,
@@ -582,7 +517,7 @@ def pose_model(
     if pose.shape[-1] != 3 * num:
         raise ValueError(f"{model.kind} takes {3 * num} pose values per frame, got {pose.shape}")
     batch = pose.shape[:-1]
-    rotations = axis_angle_to_matrix(pose.reshape(*batch, num, 3))
+    rotations = geometry.axis_angle_to_matrix_np(pose.reshape(*batch, num, 3))
     if betas is None:
         shaped = np.broadcast_to(model.v_template, (*batch, *model.v_template.shape))
     else:
@@ -590,9 +525,15 @@ def pose_model(
         shaped = np.broadcast_to(shaped, (*batch, *model.v_template.shape))
     rest_joints = regress_joints(model.j_regressor, shaped)
     posed_rest = shaped + pose_blend(model.posedirs, rotations)
-    transforms = chain_transforms(rotations, rest_joints, model.parents)
-    vertices = skin(posed_rest, model.weights, transforms, rest_joints)
-    joints = transforms[..., :3, 3]
+    # G_k = G_parent(k) [R_k | J_k - J_parent(k)]: each bone turned by its parent's frame.
+    order = chain_order(model.parents)
+    bones = rest_joints - rest_joints[..., model.parents, :]  # the root's (zero) is not used
+    joints, world = geometry.forward_kinematics_np(
+        rest_joints[..., order[0], :], rotations, bones, model.parents, order, offset_frame="parent"
+    )
+    # G_k [I | -J_k] keeps G_k's rotation and moves its translation by -R_k J_k.
+    translations = joints - (world @ rest_joints[..., None])[..., 0]
+    vertices = geometry.linear_blend_skinning_np(posed_rest, model.weights, world, translations)
     if trans is not None:
         trans = np.asarray(trans, dtype=np.float64)[..., None, :]
         vertices, joints = vertices + trans, joints + trans

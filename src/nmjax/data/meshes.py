@@ -36,7 +36,9 @@ def read_mesh(path: str | os.PathLike, fix: str = ""):
 def sample_surface(
     vertices: np.ndarray, faces: np.ndarray, points: int, seed: int, where: str
 ) -> np.ndarray:
-    """(points, 3) float32 points area-uniform on the triangles `faces` of `vertices` (V, 3).
+    """(points, 3) float32 points area-uniform on the triangles `faces` of `vertices` (V, 3): one
+    mesh as given, sampled by trimesh with `seed` (the synthetic bodies, rigid links carried
+    through a motion, are sampled by `nmjax.data.synthetic.sample_body_surface`).
 
     Raises:
       ValueError naming `where`: no face of positive area, or NaN / inf vertices.

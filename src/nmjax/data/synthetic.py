@@ -19,9 +19,10 @@ set that is missing or unfinished); the loaders never write. A sequence is made 
      signal shared by its group (a finger's curl, the hand's spread, a gait phase), mapped into a
      random sub-range of its limits and clipped to them;
   2. posing the joints by forward kinematics (`pose`, NumPy, vectorised over frames);
-  3. sampling surface points area-uniformly (`sample_surface`): the links are rigid, so triangles
-     are drawn on the rest-pose link meshes with probability proportional to their area, and the
-     samples are carried into every frame by their joint's rotation and position.
+  3. sampling surface points area-uniformly (`sample_body_surface`): the links are rigid, so
+     triangles are drawn on the rest-pose link meshes with probability proportional to their area,
+     and the samples are carried into every frame by their joint's rotation and position. (A
+     single mesh frame of a real dataset is sampled by `nmjax.data.meshes.sample_surface`.)
 
 Everything is deterministic for a seed: the set's generator `np.random.default_rng(seed)` draws the
 sequence lengths and spawns one child generator per sequence, so the same seed gives the same
@@ -42,6 +43,7 @@ from tqdm import tqdm
 
 from nmjax.data import layout
 from nmjax.data.bodies import Body, Joint, get_body
+from nmjax.geometry import axis_angle_to_matrix_np, forward_kinematics_np
 
 # --------------------------------------------------------------------------------------------
 # Motion, kinematics and surface sampling
@@ -106,18 +108,9 @@ def sample_motion(
     return angles, wander - wander[:1] + drift
 
 
-def _axis_angle(axis: Sequence[float], angle: np.ndarray) -> np.ndarray:
-    """(T, 3, 3) rotations about a fixed unit `axis` by `angle` (T,), Rodrigues' formula."""
-    k = np.asarray(axis, dtype=np.float64)
-    k = k / np.linalg.norm(k)
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * cross + (1.0 - c) * (cross @ cross)
-
-
 def _euler(rest: Sequence[float]) -> np.ndarray:
     """(3, 3) rotation Rz @ Ry @ Rx of Euler angles (x, y, z)."""
-    rx, ry, rz = (_axis_angle(a, np.array([r]))[0] for a, r in zip(np.eye(3), rest, strict=True))
+    rx, ry, rz = (axis_angle_to_matrix_np(a, r) for a, r in zip(np.eye(3), rest, strict=True))
     return rz @ ry @ rx
 
 
@@ -126,7 +119,7 @@ def _local_rotations(joint: Joint, angles: np.ndarray) -> np.ndarray:
     rotation = np.broadcast_to(_euler(joint.rest), (angles.shape[0], 3, 3))
     for column, dof in enumerate(joint.dofs):
         if dof.kind == "rotate":
-            rotation = rotation @ _axis_angle(dof.axis, angles[:, column])
+            rotation = rotation @ axis_angle_to_matrix_np(dof.axis, angles[:, column])
     return rotation
 
 
@@ -137,7 +130,7 @@ def pose(
 
     p_j = p_parent + R_parent (offset_j + Rest_j sum_slide theta axis),
     R_j = R_parent Rest_j prod_rotate R(axis, theta); the root's parent frame is the world moved by
-    `root_translation`. The loop runs over joints; every operation is vectorised over frames.
+    `root_translation` (`geometry.forward_kinematics_np`, offsets in the parent's frame).
 
     Args:
       body: the body.
@@ -153,25 +146,20 @@ def pose(
         raise ValueError(
             f"angles must have shape (T, {len(body.dofs)}) for {body.name}, got {angles.shape}"
         )
-    positions = np.zeros((frames, len(body.joints), 3))
-    rotations = np.zeros((frames, len(body.joints), 3, 3))
-    parents, start = body.parents, 0
-    for j, joint in enumerate(body.joints):
+    offsets = np.zeros((frames, len(body.joints), 3))
+    local = np.zeros((frames, len(body.joints), 3, 3))
+    start = 0
+    for j, joint in enumerate(body.joints):  # the joints' own degrees of freedom, vectorised over T
         cols = angles[:, start : start + len(joint.dofs)]
         start += len(joint.dofs)
         slide_axes = np.array(
             [d.axis if d.kind == "slide" else (0.0, 0.0, 0.0) for d in joint.dofs]
         ).reshape(-1, 3)
-        local_position = np.asarray(joint.offset) + cols @ slide_axes @ _euler(joint.rest).T
-        if joint.parent is None:
-            parent_rotation, parent_position = np.eye(3), np.asarray(root_translation, np.float64)
-        else:
-            parent_rotation, parent_position = rotations[:, parents[j]], positions[:, parents[j]]
-        positions[:, j] = parent_position + np.einsum(
-            "...ij,...j->...i", parent_rotation, local_position
-        )
-        rotations[:, j] = parent_rotation @ _local_rotations(joint, cols)
-    return positions, rotations
+        offsets[:, j] = np.asarray(joint.offset) + cols @ slide_axes @ _euler(joint.rest).T
+        local[:, j] = _local_rotations(joint, cols)
+    root = np.asarray(root_translation, np.float64) + offsets[:, 0]
+    order = np.arange(len(body.joints))  # every parent is listed before its children
+    return forward_kinematics_np(root, local, offsets, body.parents, order, offset_frame="parent")
 
 
 @functools.cache
@@ -194,7 +182,7 @@ def rest_mesh(body: Body) -> trimesh.Trimesh:
     return trimesh.Trimesh(**trimesh.triangles.to_kwargs(world))
 
 
-def sample_surface(
+def sample_body_surface(
     body: Body,
     positions: np.ndarray,
     rotations: np.ndarray,
@@ -265,7 +253,7 @@ def simulate(
     rng = np.random.default_rng(rng) if isinstance(rng, int) else rng
     angles, root = sample_motion(body, frames, rng)
     positions, rotations = pose(body, angles, root)
-    vertices = sample_surface(body, positions, rotations, points, rng)
+    vertices = sample_body_surface(body, positions, rotations, points, rng)
     return SyntheticSequence(
         vertices, positions.astype(np.float32), angles.astype(np.float32), root.astype(np.float32)
     )

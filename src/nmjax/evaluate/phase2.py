@@ -17,12 +17,12 @@ from nmjax.data.datasets import pad_with_last
 from nmjax.evaluate.phase1 import PHASE1_METRICS, evaluate_phase1
 from nmjax.evaluate.stats import summarize_per_rate
 from nmjax.evaluate.tables import markdown_tables
-from nmjax.tasks import Interpolators
+from nmjax.tasks import INTERPOLATION_METHODS, Interpolators
 from nmjax.train import dyn_inputs, trained
 from nmjax.train.trained import Detector
 
 SAMPLING_RATES = (3, 5, 10, 15, 20, 25, 30)
-METHODS = ("Ours", "VRNN", "Lerp", "Slerp")
+METHODS = INTERPOLATION_METHODS
 MCD_SCALE = 1e3
 INTERPOLATION_METRICS = {
     "interpolation": "M-CD (Eq. 22) x1e3, Tables 11-12: keypoints between keyframes SR frames "

@@ -25,6 +25,8 @@ import dataclasses
 
 import numpy as np
 
+from nmjax import geometry
+
 EULER_ORDER = "ZXY"  # BVH rotation channels: Zrotation Xrotation Yrotation, R = Rz Rx Ry
 MAX_INFLUENCES = 4  # glTF's JOINTS_0 / WEIGHTS_0 hold four joints per vertex
 
@@ -97,34 +99,6 @@ def kept_tree(
     return joints, np.array([index[int(ancestor[k])] for k in joints], np.int64)
 
 
-def align_vectors(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """The smallest rotation turning direction u onto direction v: (..., 3) x2 -> (..., 3, 3).
-
-    Rodrigues' formula about u x v; opposite directions turn by pi about an axis normal to u;
-    a zero vector on either side gives the identity.
-    """
-    u, v = np.asarray(u, np.float64), np.asarray(v, np.float64)
-    nu, nv = np.linalg.norm(u, axis=-1), np.linalg.norm(v, axis=-1)
-    degenerate = (nu < 1e-12) | (nv < 1e-12)
-    u = u / np.where(degenerate, 1.0, nu)[..., None]
-    v = v / np.where(degenerate, 1.0, nv)[..., None]
-    c = np.sum(u * v, axis=-1)
-    axis = np.cross(u, v)
-    zero = np.zeros_like(c)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    skew = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*c.shape, 3, 3)
-    eye = np.broadcast_to(np.eye(3), (*c.shape, 3, 3))
-    opposite = c < -1.0 + 1e-9
-    general = eye + skew + skew @ skew / np.where(opposite, 1.0, 1.0 + c)[..., None, None]
-    # Any axis normal to u turns it onto -u: u x e_x, or u x e_y when u lies along x.
-    other = np.where(np.abs(u[..., :1]) < 0.9, np.eye(3)[0], np.eye(3)[1])
-    normal = np.cross(u, other)
-    normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-12)
-    flip = 2.0 * normal[..., :, None] * normal[..., None, :] - eye  # pi about `normal`
-    out = np.where(opposite[..., None, None], flip, general)
-    return np.where(degenerate[..., None, None], eye, out)
-
-
 def swing_rotations(
     positions: np.ndarray, rest_positions: np.ndarray, parents: np.ndarray
 ) -> np.ndarray:
@@ -143,7 +117,7 @@ def swing_rotations(
     parents = np.asarray(parents)
     rest_bones = rest_positions - rest_positions[parents]  # (J, 3), the root's is zero
     bones = positions - positions[:, parents]  # (T, J, 3)
-    return align_vectors(np.broadcast_to(rest_bones, bones.shape), bones)
+    return geometry.align_rotation_np(np.broadcast_to(rest_bones, bones.shape), bones)
 
 
 def local_transforms(

@@ -18,17 +18,11 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from nmjax.export.rig import Rig, kept_tree, swing_rotations
 
-GENERATE_FILE = "generate.npz"
-INTERPOLATE_FILE = "interpolate.npz"
-INTERPOLATE_METHODS = ("Ours", "VRNN", "Lerp", "Slerp", "truth")
-DEFAULT_FRAME_RATE = 30.0  # task outputs written before they stored their run's rate
-DEFAULT_UP_AXIS = 2  # ... and its up axis (z, as `nmjax view` assumes for them)
 RETARGET_RIG_KEYS = ("rotations", "rest_rotations", "rest_joints", "rest_vertices", "faces")
 
 
@@ -44,7 +38,8 @@ class Options:
 
 
 def kind(folder: Path) -> str:
-    """ "retarget", "generate", "interpolate", "skel" (phase-1 run) or "dyn" (phase-2 run).
+    """ "retarget", "generate", "interpolate", "skel" (phase-1 run) or "dyn" (phase-2 run), as
+    `tasks.folder_kind` tells them apart.
 
     Raises:
       FileNotFoundError: no such folder, or one that holds none of these.
@@ -56,18 +51,13 @@ def kind(folder: Path) -> str:
             f"--run {folder} does not exist; give a run folder (train-skel, train-dyn) or an "
             "output folder of `nmjax retarget`, `generate` or `interpolate`"
         )
-    if (folder / tasks.RETARGET_FILE).is_file():
-        return "retarget"
-    if (folder / GENERATE_FILE).is_file():
-        return "generate"
-    if (folder / INTERPOLATE_FILE).is_file():
-        return "interpolate"
-    if (folder / run_folder.CONFIG_FILE).is_file():
-        return run_folder.run_kind(folder)
-    raise FileNotFoundError(
-        f"--run {folder} holds no {run_folder.CONFIG_FILE}, {tasks.RETARGET_FILE}, {GENERATE_FILE} "
-        f"or {INTERPOLATE_FILE}; is it an unfinished run or output?"
-    )
+    found = tasks.folder_kind(folder)
+    if found is None:
+        raise FileNotFoundError(
+            f"--run {folder} holds no {run_folder.CONFIG_FILE}, {tasks.RETARGET_FILE}, "
+            f"{tasks.GENERATE_FILE} or {tasks.INTERPOLATE_FILE}; is it an unfinished run or output?"
+        )
+    return found
 
 
 def _refuse(options: Options, allowed: tuple[str, ...], what: str) -> None:
@@ -157,14 +147,6 @@ def positions_rig(
     )
 
 
-def _stored_format(z: Any, num: int) -> tuple[float, int, np.ndarray]:
-    """(frame rate, up axis, keep) stored in a task's .npz; defaults for older files."""
-    rate = float(z["frame_rate"]) if "frame_rate" in z else DEFAULT_FRAME_RATE
-    up = int(z["up_axis"]) if "up_axis" in z else DEFAULT_UP_AXIS
-    keep = np.asarray(z["keep"], bool) if "keep" in z else np.ones(num, bool)
-    return rate, up, keep
-
-
 def _input_index(names: list[str], seq: str | None, path: Path) -> int:
     if seq is None:
         return 0
@@ -174,30 +156,34 @@ def _input_index(names: list[str], seq: str | None, path: Path) -> int:
 
 
 def _task_output(folder: Path, found: str, options: Options) -> tuple[Rig, int]:
-    path = folder / (GENERATE_FILE if found == "generate" else INTERPOLATE_FILE)
-    with np.load(path) as z:
-        names = [str(n) for n in z["names"]]
-        i = _input_index(names, options.seq, path)
-        parents = np.asarray(z["parents"])
-        rate, up, keep = _stored_format(z, len(parents))
-        if found == "generate":
-            motions = z["keypoints"]  # (I, S, T, K, 4)
-            sample = 0 if options.sample is None else options.sample
-            count = motions.shape[1]
-            if not 0 <= sample < count:
-                raise ValueError(
-                    f"--sample {sample} is out of range: {path} holds {count} samples per input "
-                    f"(0..{count - 1})"
-                )
-            motion, name = motions[i, sample], f"{names[i]}_sample_{sample}"
-        else:
-            method = "Ours" if options.method is None else options.method
-            present = [m for m in INTERPOLATE_METHODS if m in z]
-            if method not in present:
-                raise ValueError(
-                    f"--method {method!r} is not in {path}; its methods: {', '.join(present)}"
-                )
-            motion, name = z[method][i], f"{names[i]}_{method}"
+    from nmjax import tasks
+
+    if found == "generate":
+        z, path = tasks.read_generate(folder), folder / tasks.GENERATE_FILE
+    else:
+        z, path = tasks.read_interpolate(folder), folder / tasks.INTERPOLATE_FILE
+    names = [str(n) for n in z["names"]]
+    i = _input_index(names, options.seq, path)
+    parents = np.asarray(z["parents"])
+    rate, up, keep = tasks.rig_format(z, len(parents))
+    if found == "generate":
+        motions = z["keypoints"]  # (I, S, T, K, 4)
+        sample = 0 if options.sample is None else options.sample
+        count = motions.shape[1]
+        if not 0 <= sample < count:
+            raise ValueError(
+                f"--sample {sample} is out of range: {path} holds {count} samples per input "
+                f"(0..{count - 1})"
+            )
+        motion, name = motions[i, sample], f"{names[i]}_sample_{sample}"
+    else:
+        method = "Ours" if options.method is None else options.method
+        present = [*tasks.interpolated_methods(z), "truth"]
+        if method not in present:
+            raise ValueError(
+                f"--method {method!r} is not in {path}; its methods: {', '.join(present)}"
+            )
+        motion, name = z[method][i], f"{names[i]}_{method}"
     return positions_rig(name, motion, parents, keep, rate), up
 
 
@@ -205,17 +191,15 @@ def _retarget(folder: Path) -> tuple[Rig, int]:
     from nmjax import tasks
     from nmjax.skeleton import skeleton_from_parents
 
-    path = folder / tasks.RETARGET_FILE
-    with np.load(path) as z:
-        missing = [k for k in RETARGET_RIG_KEYS if k not in z]
-        if missing:
-            raise ValueError(
-                f"{path} lacks {', '.join(missing)}: it was written before `nmjax export` "
-                "existed; run `nmjax retarget` again to write them"
-            )
-        arrays = {k: np.asarray(z[k]) for k in z.files}
+    arrays = tasks.read_retarget_arrays(folder)
+    missing = [k for k in RETARGET_RIG_KEYS if k not in arrays]
+    if missing:
+        raise ValueError(
+            f"{folder / tasks.RETARGET_FILE} lacks {', '.join(missing)}: it was written before "
+            "`nmjax export` existed; run `nmjax retarget` again to write them"
+        )
     parents = arrays["parents"]
-    rate, up, keep = _stored_format(arrays, len(parents))
+    rate, up, keep = tasks.rig_format(arrays, len(parents))
     weights = arrays["skin_weights"].astype(np.float64)
     # Algorithm 2 prunes at its default threshold; a node the skeleton dropped at another
     # threshold but the weights use is exported too, so the mesh moves as nmjax moved it.

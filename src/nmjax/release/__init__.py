@@ -23,7 +23,7 @@ and a phase-2 run folder that every nmjax command reads (`runs`), as if `train-s
 Only NumPy is imported here: JAX, Flax and the rest of nmjax load when a function needs them.
 """
 
-from nmjax.release.checkpoint import Checkpoint, ForbiddenClassError, read_checkpoint, read_options
+from nmjax.release.checkpoint import Checkpoint, read_checkpoint, read_options
 from nmjax.release.convert import build_networks, check_all_used, fill
 from nmjax.release.importer import (
     PROVENANCE_FILE,
@@ -61,7 +61,6 @@ __all__ = [
     "SUPPORTED_OPTIONS",
     "Checkpoint",
     "Entry",
-    "ForbiddenClassError",
     "Layout",
     "Widths",
     "build_networks",

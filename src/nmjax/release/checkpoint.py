@@ -2,10 +2,11 @@
 
 A checkpoint is a zip archive with one top folder holding data.pkl (the pickled state dict,
 whose tensors name their storages by a persistent id) and one raw file per storage under data/
-(shared/release/README.md). It is read by a restricted unpickler that admits only what a state
-dict is made of: the ordered dict, the tensor-rebuild function and the storage types. Anything
-else in the pickle is refused before it is built, so reading a checkpoint can never run code.
-`read_options` reads opt.pickle admitting only `argparse.Namespace`.
+(shared/release/README.md). It is read by nmjax's restricted unpickler
+(`nmjax.data.restricted_pickle`) admitting only what a state dict is made of: the ordered dict,
+the tensor-rebuild function and the storage types (`STATE_DICT_GLOBALS`). Anything else in the
+pickle is refused before it is built, so reading a checkpoint can never run code. `read_options`
+reads opt.pickle admitting only `argparse.Namespace`.
 """
 
 from __future__ import annotations
@@ -21,6 +22,8 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import numpy as np
+
+from nmjax.data.restricted_pickle import RefusedGlobal, RestrictedUnpickler
 
 # torch.<Name>Storage -> NumPy element type (little-endian unless the archive says otherwise).
 # bfloat16 has no NumPy type: its 16 bits are the top half of a float32.
@@ -104,24 +107,22 @@ def _rebuild_tensor(
     return np.ascontiguousarray(view)
 
 
-class _StateDictUnpickler(pickle.Unpickler):
-    """Unpickles data.pkl admitting only the classes of a state dict; storages from the zip."""
+# The globals of a state dict: the ordered dict, the tensor-rebuild function, the storage types.
+STATE_DICT_GLOBALS = {
+    ("collections", "OrderedDict"): collections.OrderedDict,
+    ("torch._utils", "_rebuild_tensor_v2"): _rebuild_tensor,
+    **{("torch", name): _StorageType(name) for name in STORAGE_TYPES},
+}
+OPTIONS_GLOBALS = {("argparse", "Namespace"): argparse.Namespace}  # opt.pickle's one class
 
-    def __init__(self, data: bytes, load_storage: Callable[[_StorageType, str, int], _Storage]):
-        super().__init__(io.BytesIO(data))
-        self._load_storage = load_storage
-        self._storages: dict[str, _Storage] = {}
 
-    def find_class(self, module: str, name: str) -> Any:
-        if (module, name) == ("collections", "OrderedDict"):
-            return collections.OrderedDict
-        if (module, name) == ("torch._utils", "_rebuild_tensor_v2"):
-            return _rebuild_tensor
-        if module == "torch" and name in STORAGE_TYPES:
-            return _StorageType(name)
-        raise ForbiddenClassError(f"{module}.{name}")
+def _storage_loader(
+    load_storage: Callable[[_StorageType, str, int], _Storage],
+) -> Callable[[Any], _Storage]:
+    """The persistent-id hook of data.pkl: each storage read from the zip once, by its key."""
+    storages: dict[str, _Storage] = {}
 
-    def persistent_load(self, pid: Any) -> _Storage:
+    def persistent_load(pid: Any) -> _Storage:
         # ("storage", storage type, key, location, number of elements)
         if not (
             isinstance(pid, tuple)
@@ -132,13 +133,11 @@ class _StateDictUnpickler(pickle.Unpickler):
         ):
             raise ValueError(f"a storage reference {pid!r:.80} that is not PyTorch's")
         key = str(pid[2])
-        if key not in self._storages:
-            self._storages[key] = self._load_storage(pid[1], key, pid[4])
-        return self._storages[key]
+        if key not in storages:
+            storages[key] = load_storage(pid[1], key, pid[4])
+        return storages[key]
 
-
-class ForbiddenClassError(ValueError):
-    """A pickle names a class or function outside the admitted few."""
+    return persistent_load
 
 
 def _check_file(path: Path, what: str, fix: str) -> bytes:
@@ -224,8 +223,12 @@ def _read_archive(archive: zipfile.ZipFile, path: Path) -> dict[str, np.ndarray]
         return _Storage(values, key)
 
     try:
-        state = _StateDictUnpickler(archive.read(pickles[0]), load_storage).load()
-    except ForbiddenClassError as err:
+        state = RestrictedUnpickler(
+            archive.read(pickles[0]),
+            STATE_DICT_GLOBALS,
+            persistent_load=_storage_loader(load_storage),
+        ).load()
+    except RefusedGlobal as err:
         raise ValueError(
             f"{path} holds {err}, which a state dict never does; refused without building it "
             "(a checkpoint is read admitting only the ordered dict, the tensor-rebuild function "
@@ -244,13 +247,6 @@ def _read_archive(archive: zipfile.ZipFile, path: Path) -> dict[str, np.ndarray]
     return dict(state)
 
 
-class _OptionsUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str) -> Any:
-        if (module, name) == ("argparse", "Namespace"):
-            return argparse.Namespace
-        raise ForbiddenClassError(f"{module}.{name}")
-
-
 def read_options(path: str | Path) -> dict[str, Any]:
     """The fields of a pickled `argparse.Namespace` (the release's opt.pickle) as a dict.
 
@@ -263,8 +259,8 @@ def read_options(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     data = _check_file(path, "options file", "give the authors' pretrained/aist/opt.pickle")
     try:
-        options = _OptionsUnpickler(io.BytesIO(data)).load()
-    except ForbiddenClassError as err:
+        options = RestrictedUnpickler(data, OPTIONS_GLOBALS).load()
+    except RefusedGlobal as err:
         raise ValueError(
             f"options file {path} holds {err}; refused without building it (opt.pickle holds "
             "one argparse.Namespace); give the authors' pretrained/aist/opt.pickle"

@@ -15,10 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, run_folder
+from nmjax import run_folder
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics
-from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
+from nmjax.tasks import outputs
+from nmjax.tasks.inputs import TaskClips, pick_inputs, source_file_clip
 from nmjax.train import dyn_inputs, trained
 
 
@@ -140,12 +141,10 @@ def run_generate(
     generation demo does (`point_file_keypoints`); its observed motion holds the last of them.
 
     The observed frames are taken as the run was trained (`generation_clips`) and inferred with
-    the model's best-of-S posterior samples. Writes generate.npz (keypoints (I, S, T_cond +
-    T_gen, K, 4), each sample starting with the T_cond observed frames; observed (I, T, K, 4) -
-    those and the true continuation, padded with its last frame where the sequence is shorter
-    (long horizons) - observed_frames (I,) the real frames of it, names, parents), optionally
-    voxels.npz (decoded occupancy of every sample, uint8), and per input a GIF and PNG strip
-    (observed next to the samples).
+    the model's best-of-S posterior samples. Writes generate.npz (`outputs.write_generate`:
+    the samples, each starting with the T_cond observed frames, and the observed frames with the
+    true continuation), optionally voxels.npz (decoded occupancy of every sample, uint8), and per
+    input a GIF and PNG strip (observed next to the samples).
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
@@ -168,20 +167,22 @@ def run_generate(
         num_samples=samples,
     )
     keypoints = np.asarray(keypoints)
-    atomic.save_npz(
-        out / "generate.npz",
-        keypoints=keypoints,
-        observed=observed,
-        observed_frames=real_frames,
-        names=np.array(names),
-        parents=np.array(model.parents),
-        cond=np.int32(cond),
-        **rig_arrays(skel_run, len(model.parents)),
-    )
+    occupancy = None
     if voxels:
         detector = trained.Detector.load(skel_run)
         decoded = [detector.decode(keypoints[:, s], clips.first_voxels) for s in range(samples)]
-        atomic.save_npz(out / "voxels.npz", voxels=(np.stack(decoded, 1) >= 0.5).astype(np.uint8))
+        occupancy = np.stack(decoded, 1) >= 0.5
+    outputs.write_generate(
+        out,
+        outputs.rig_arrays(skel_run, len(model.parents)),
+        keypoints=keypoints,
+        observed=observed,
+        observed_frames=real_frames,
+        names=names,
+        parents=model.parents,
+        cond=cond,
+        voxels=occupancy,
+    )
     for i, name in enumerate(names):
         motions = [observed[i]] + [keypoints[i, s] for s in range(samples)]
         held = real_frames[i] < cond + gen  # the sequence ends before the horizon

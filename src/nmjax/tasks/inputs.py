@@ -5,8 +5,8 @@ runs the phase-1 detector on each clip normalised with its own bounding box, as 
 generation and interpolation demos do; "sequence" cuts the clips from the whole-sequence
 keypoints_test.npz (`run_retarget` always does). With `--source-file` the one input is a
 point-sequence file instead, detected as the release's demos take it. Each command writes into
-`out` (default `RUN/<command>`) the keypoints as .npz with the rig of `rig_arrays`, a GIF of the
-motion and a PNG strip of frames.
+`out` (default `RUN/<command>`) the keypoints as .npz (`nmjax.tasks.outputs`), a GIF of the motion
+and a PNG strip of frames.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from pathlib import Path
 
 import numpy as np
 
-from nmjax import run_folder
 from nmjax.data.datasets import pad_with_last
 from nmjax.train import trained
 
@@ -53,18 +52,6 @@ class TaskClips:
     keypoints: np.ndarray
     real_frames: np.ndarray
     first_voxels: np.ndarray | None = None
-
-
-def rig_arrays(skel_run: Path, num_keypoints: int) -> dict[str, np.ndarray]:
-    """What `nmjax export` needs beside a task's motions: "frame_rate" and "up_axis" of the
-    phase-1 run's sequences and "keep", the (K,) nodes its skeleton keeps."""
-    frame_rate, up_axis = run_folder.motion_format(skel_run)
-    kept = run_folder.pruned_skeleton(skel_run)
-    return {
-        "frame_rate": np.float64(frame_rate),
-        "up_axis": np.int64(up_axis),
-        "keep": np.ones(num_keypoints, bool) if kept is None else kept[1],
-    }
 
 
 # --- a motion from a point-sequence file (`--source-file`) -----------------------------------

@@ -21,10 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, run_folder
+from nmjax import geometry, run_folder
 from nmjax.config import DynTrainConfig
 from nmjax.models.dynamics import Dynamics, bone_lengths
-from nmjax.tasks.inputs import TaskClips, pick_inputs, rig_arrays, source_file_clip
+from nmjax.tasks import outputs
+from nmjax.tasks.inputs import TaskClips, pick_inputs, source_file_clip
 from nmjax.train import dyn_inputs, trained
 
 
@@ -148,7 +149,8 @@ def slerp_jit(graphdef, state, x_start, x_end, key, *, gap: int):
 
 @dataclasses.dataclass
 class Interpolators:
-    """The compiled interpolation methods on one phase-2 model (and the optional VRNN)."""
+    """The compiled interpolation methods (`outputs.INTERPOLATION_METHODS`) on one phase-2 model
+    (and the optional VRNN)."""
 
     nm: tuple[Any, Any]  # (graphdef, state) of the "nm" dynamics
     vrnn: tuple[Any, Any] | None
@@ -211,8 +213,9 @@ def run_interpolate(
     release's interpolation demo does (`point_file_keypoints`).
 
     The keyframes and the truth between them are taken as the run was trained
-    (`interpolation_clips`). Writes interpolate.npz ({method: (I, gap + 1, K, 4)}, "truth", names,
-    parents) and per input a GIF and PNG strip with one panel per method and the truth.
+    (`interpolation_clips`). Writes interpolate.npz (`outputs.write_interpolate`: {method: (I,
+    gap + 1, K, 4)} and the truth) and per input a GIF and PNG strip with one panel per method
+    and the truth.
     """
     from nmjax import viz  # matplotlib only where a picture is drawn
 
@@ -228,16 +231,16 @@ def run_interpolate(
         names, truth = clips.names, clips.keypoints
     vrnn = None if vrnn_run is None else nnx.split(trained.restore_dynamics(vrnn_run))
     interp = Interpolators(nnx.split(model), vrnn, trajectories)
-    methods = ["Ours"] + (["VRNN"] if vrnn is not None else []) + ["Lerp", "Slerp"]
+    methods = outputs.interpolation_methods(vrnn is not None)
     key = jax.random.key(seed)
     results = {m: interp.run(m, truth[:, 0], truth[:, -1], gap, key) for m in methods}
-    atomic.save_npz(
-        out / "interpolate.npz",
+    outputs.write_interpolate(
+        out,
+        outputs.rig_arrays(skel_run, len(model.parents)),
+        results,
         truth=truth,
-        names=np.array(names),
-        parents=np.array(model.parents),
-        **results,
-        **rig_arrays(skel_run, len(model.parents)),
+        names=names,
+        parents=model.parents,
     )
     for i, name in enumerate(names):
         motions = [truth[i]] + [results[m][i] for m in methods]

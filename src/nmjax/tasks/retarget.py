@@ -1,23 +1,23 @@
 """Motion retargeting (Eqs. 24-25, appendix A.4 and D.4): source local rotations with target bone
 offsets (`retarget_joints`), skin weights (Algorithm 2, `nmjax.skeleton.skin_weights`) and linear
 blend skinning of a target mesh (`retarget_vertices`), together `retarget_mesh`; on a run folder
-`run_retarget` (`nmjax retarget`), whose output folder `read_retarget` reads back.
+`run_retarget` (`nmjax retarget`), whose output folder `nmjax.tasks.outputs` writes and reads.
 """
 
 from __future__ import annotations
 
 import functools
 from pathlib import Path
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
 
-from nmjax import atomic, geometry, run_folder
+from nmjax import geometry, run_folder
 from nmjax.models.dynamics import Dynamics
-from nmjax.tasks.inputs import pick_inputs, rig_arrays, source_file_clip
+from nmjax.tasks import outputs
+from nmjax.tasks.inputs import pick_inputs, source_file_clip
 from nmjax.train import trained
 
 
@@ -77,27 +77,6 @@ def retarget_joints(
     )
 
 
-def align_rotation(u: jax.Array, v: jax.Array) -> jax.Array:
-    """The smallest rotation taking unit vectors u to v: (..., 3), (..., 3) -> (..., 3, 3).
-
-    Rodrigues' formula about u x v; antiparallel inputs turn by pi about an axis normal to u.
-    """
-    u, v = geometry.normalize(u), geometry.normalize(v)
-    c = jnp.sum(u * v, axis=-1)[..., None, None]
-    axis = jnp.cross(u, v)
-    # For u = -v any axis normal to u works: u x e_x, or u x e_y when u is along x.
-    fallback = jnp.cross(u, jnp.where(jnp.abs(u[..., :1]) < 0.9, jnp.eye(3)[0], jnp.eye(3)[1]))
-    anti = (c[..., 0, 0] < -1.0 + 1e-6)[..., None]
-    axis = jnp.where(anti, geometry.normalize(fallback), axis)
-    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
-    zero = jnp.zeros_like(x)
-    skew = jnp.stack([zero, -z, y, z, zero, -x, -y, x, zero], axis=-1).reshape(*x.shape, 3, 3)
-    eye = jnp.eye(3)
-    general = eye + skew + skew @ skew / (1.0 + jnp.where(anti[..., None], 0.0, c))
-    flip = 2.0 * axis[..., :, None] * axis[..., None, :] - eye  # rotation by pi about `axis`
-    return jnp.where(anti[..., None], flip, general)
-
-
 def rest_rotations(
     joints: jax.Array,
     rotations: jax.Array,
@@ -123,7 +102,7 @@ def rest_rotations(
     par = np.asarray(parents)
     bones = joints - joints[par]
     predicted = jnp.einsum("kij,kj->ki", rotations, geometry.normalize(directions))
-    fix = align_rotation(predicted, bones)
+    fix = geometry.align_rotation(predicted, bones)
     is_root = jnp.asarray(par == np.arange(len(par)))[:, None, None]
     return jnp.where(is_root, rotations, fix @ rotations)
 
@@ -150,11 +129,9 @@ def retarget_vertices(
     Returns:
       (T, V, 3) deformed vertices.
     """
-    from nmjax.skeleton import linear_blend_skinning
-
     rel = rotations @ jnp.swapaxes(rest_rots, -1, -2)  # (T, K, 3, 3)
     trans = joints - jnp.einsum("tkij,kj->tki", rel, rest_joints)
-    return linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
+    return geometry.linear_blend_skinning(vertices, weights, rotations=rel, translations=trans)
 
 
 def retarget_mesh(
@@ -239,17 +216,6 @@ def detect_target_joints(detector: trained.Detector, points: np.ndarray) -> np.n
     return keypoints[0, 0]
 
 
-def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
-    """A triangle mesh as Wavefront .obj text, atomically."""
-    lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in vertices]
-    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    atomic.write_text(path, "\n".join(lines) + "\n")
-
-
-RETARGET_FILE = "retarget.npz"  # the keypoints and joints of a `run_retarget` output folder
-RETARGET_FRAME = "frame_{:04d}.obj"  # its posed target meshes, one per frame
-
-
 def run_retarget(
     run: str | Path,
     target: str | Path,
@@ -277,7 +243,7 @@ def run_retarget(
        of the target pose, corrected onto its bones (`rest_rotations`).
     4. Skin weights (Algorithm 2, the run's keypoint intensities for pruning) and LBS (steps 3-4
        are `retarget_mesh`); the result is mapped back to the mesh's units and written as
-       frame_XXXX.obj plus a GIF.
+       frame_XXXX.obj and retarget.npz (`outputs.write_retarget`) plus a GIF.
 
     Returns:
       the output folder.
@@ -339,27 +305,23 @@ def run_retarget(
     def to_mesh(x) -> np.ndarray:  # the normalised frame back to the mesh's units
         return undo_box(x, bmin, scale)
 
-    moved_mesh = to_mesh(moved)
     faces = np.asarray(mesh.faces)
-    for t, verts in enumerate(moved_mesh):
-        write_obj(out / RETARGET_FRAME.format(t), verts, faces)
     src_mu = np.asarray(x_src[0])
-    atomic.save_npz(
-        out / RETARGET_FILE,
+    outputs.write_retarget(
+        out,
+        outputs.rig_arrays(skel_run, len(parents)),
+        to_mesh(moved),
+        faces,
+        source=name,
         source_keypoints=src_mu,
         target_keypoints=target_kp,
-        joints=to_mesh(joints).astype(np.float32),
+        joints=to_mesh(joints),
         skin_weights=weights,
-        parents=np.array(parents),
-        source=np.array(name),
-        # The rig (`nmjax export`): LBS moves joint k's part of the mesh rigidly from its rest
-        # transform (rest_rotations, rest_joints) to its transform at t (rotations, joints).
-        rotations=np.asarray(rotations, np.float32),
-        rest_rotations=np.asarray(rest, np.float32),
-        rest_joints=to_mesh(target_kp[:, :3]).astype(np.float32),
-        rest_vertices=np.asarray(mesh.vertices, np.float32),
-        faces=faces.astype(np.int64),
-        **rig_arrays(skel_run, len(parents)),
+        parents=parents,
+        rotations=rotations,
+        rest_rotations=rest,
+        rest_joints=to_mesh(target_kp[:, :3]),
+        rest_vertices=mesh.vertices,
     )
     # Pictures in the normalised frames (source and target each in their own [-1, 1] cube).
     sub = np.random.default_rng(seed).choice(len(faces), min(len(faces), 1500), replace=False)
@@ -371,55 +333,4 @@ def run_retarget(
         parents,
         clouds=[None, tri_centres],
     )
-    return out
-
-
-def read_retarget(folder: str | Path) -> dict[str, Any]:
-    """A `run_retarget` output folder read back (the one reader of that format).
-
-    Returns:
-      {"vertices": (T, V, 3) float32 posed target meshes in the mesh's units, "faces": (F, 3),
-      "joints": (T, K, 3) retargeted joints in the mesh's units, "parents": (K,),
-      "source_keypoints": (T, K, 4) the source motion in its normalised frame, "source": name}.
-
-    Raises:
-      FileNotFoundError: no such folder, or one without retarget.npz or frame meshes (names the
-        command that writes them).
-      ValueError: frames that disagree with each other or with retarget.npz.
-    """
-    from nmjax.data.meshes import read_mesh
-
-    folder = Path(folder)
-    fix = "write it with `nmjax retarget --run RUN --target MESH --out DIR`"
-    if not folder.is_dir():
-        raise FileNotFoundError(f"retarget output folder {folder} does not exist; {fix}")
-    frames = sorted(folder.glob(RETARGET_FRAME.replace("{:04d}", "[0-9]*")))
-    if not (folder / RETARGET_FILE).is_file() or not frames:
-        raise FileNotFoundError(
-            f"{folder} lacks {RETARGET_FILE} or its {RETARGET_FRAME.format(0)}... meshes; is it "
-            f"an unfinished retarget output? {fix}"
-        )
-    with np.load(folder / RETARGET_FILE) as z:
-        missing = [k for k in ("joints", "parents", "source_keypoints", "source") if k not in z]
-        if missing:
-            raise ValueError(f"{folder / RETARGET_FILE} lacks {missing}; {fix}")
-        out = {
-            "joints": np.asarray(z["joints"], np.float32),
-            "parents": np.asarray(z["parents"]),
-            "source_keypoints": np.asarray(z["source_keypoints"], np.float32),
-            "source": str(z["source"]),
-        }
-    meshes = [read_mesh(path, fix) for path in frames]
-    faces = np.asarray(meshes[0].faces)
-    if any(
-        m.vertices.shape != meshes[0].vertices.shape or len(m.faces) != len(faces) for m in meshes
-    ):
-        raise ValueError(f"{folder}: the frame meshes differ in vertices or faces; {fix}")
-    if len(meshes) != len(out["joints"]):
-        raise ValueError(
-            f"{folder}: {len(meshes)} frame meshes but {len(out['joints'])} frames of joints in "
-            f"{RETARGET_FILE}; {fix}"
-        )
-    out["vertices"] = np.stack([np.asarray(m.vertices, np.float32) for m in meshes])
-    out["faces"] = faces
     return out

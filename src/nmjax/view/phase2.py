@@ -48,7 +48,9 @@ class Phase2Data:
     @property
     def methods(self) -> list[str]:
         """The interpolation methods shown, in `tasks.Interpolators` names."""
-        return ["Ours"] + (["VRNN"] if self.vrnn is not None else []) + ["Lerp", "Slerp"]
+        from nmjax import tasks
+
+        return tasks.interpolation_methods(self.vrnn is not None)
 
     def generate(
         self, name: str, cond: int, gen: int, samples: int, seed: int

@@ -34,8 +34,8 @@ GLTF_SUFFIXES = (".glb", ".gltf")
 
 
 def folder_kind(folder: str | Path) -> str:
-    """What `folder` holds: "skel" (a phase-1 run), "dyn" (phase 2) or "retarget"; "gltf" for
-    a .glb / .gltf file.
+    """What `folder` holds: "skel" (a phase-1 run), "dyn" (phase 2) or "retarget"
+    (`tasks.folder_kind`); "gltf" for a .glb / .gltf file.
 
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
@@ -51,10 +51,15 @@ def folder_kind(folder: str | Path) -> str:
             "`nmjax train-dyn`, an output folder of `nmjax retarget`, or a .glb / .gltf file "
             "of `nmjax export`"
         )
-    if (folder / run_folder.CONFIG_FILE).is_file():
-        return run_folder.run_kind(folder)
-    if (folder / tasks.RETARGET_FILE).is_file():
-        return "retarget"
+    found = tasks.folder_kind(folder)
+    if found in ("skel", "dyn", "retarget"):
+        return found
+    if found is not None:  # a generate or interpolate output
+        raise FileNotFoundError(
+            f"--run {folder} is an `nmjax {found}` output, which `nmjax view` does not show; "
+            "view the phase-2 run it came from (it generates and interpolates live), or turn "
+            "it into a file with `nmjax export`"
+        )
     raise FileNotFoundError(
         f"--run {folder} holds neither {run_folder.CONFIG_FILE} (a run folder) nor "
         f"{tasks.RETARGET_FILE} (an `nmjax retarget` output); is it an unfinished run?"

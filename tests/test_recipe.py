@@ -96,6 +96,24 @@ def test_cpu_preset_trains_the_recipe_that_measured_better_on_two_cores():
     )
 
 
+def test_a_capture_trains_a_step_count_whatever_its_sequences():
+    # A capture is one or a few sequences: an epoch would be one step, so the generic spec
+    # counts 20,000 steps, decays at 30% and 70%, and one Adam state (none restarted per step).
+    cfg = skel_preset("capture", "default")
+    for sequences in (1, 2, 40):
+        resolved = resolve_epochs(cfg, sequences, 3)
+        assert (resolved.loop.epochs, resolved.loop.steps) == (0, 20_000)
+        settings = optim.OptimizerSettings.of(resolved)
+        assert settings.milestones == (6000, 14000) and settings.restart_period is None
+        assert settings.learning_rate == 4e-4 and settings.clip_norm == 0.0
+    assert (cfg.weights.vol, cfg.weights.traj, cfg.weights.local) == (10.0, 1.0, 1e-3)
+    assert (cfg.model.num_keypoints, cfg.model.sigma_g, cfg.data.sample_rate) == (24, 1.5, 1)
+    # The smaller presets are the same for a capture as for any body.
+    cpu = skel_preset("capture", "cpu")
+    assert (cpu.loop.steps, cpu.optim.lr_milestones) == (CPU_STEPS, CPU_LR_MILESTONES)
+    assert skel_preset("capture", "tiny").loop.steps == skel_preset("synth-arm", "tiny").loop.steps
+
+
 def test_a_step_count_keeps_the_decays_at_their_fractions():
     cfg = with_steps(skel_preset("synth-arm", "default"), 1000)
     assert (cfg.loop.epochs, cfg.loop.steps, cfg.optim.lr_milestones) == (0, 1000, (300, 700))

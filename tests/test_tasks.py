@@ -556,3 +556,57 @@ def test_retarget_command_and_bad_mesh(runs, tmp_path, capsys):
     assert cli.main(argv) == 2
     err = capsys.readouterr().err
     assert "bad.obj" in err and len(err.strip().splitlines()) == 1
+
+
+def test_retarget_takes_every_source_frame_by_default(runs, tmp_path):
+    import trimesh
+
+    from nmjax import cli, run_folder
+
+    target = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(0.2, 0.3, 1.0)).export(target)
+    out = tmp_path / "re"
+    argv = ["retarget", "--run", str(runs["nm"]), "--target", str(target), "--points", "800"]
+    assert cli.main([*argv, "--out", str(out)]) == 0
+    trajectories = run_folder.load_trajectories(runs["skel"], "test")
+    assert len(trajectories[min(trajectories)]) == 12  # the first test sequence, all its frames
+    assert len(sorted(out.glob("frame_*.obj"))) == 12
+
+
+def test_retarget_names_a_phase1_run_and_a_point_cloud_target(runs, tmp_path, capsys):
+    import trimesh
+
+    from nmjax import cli
+
+    target = tmp_path / "box.obj"
+    trimesh.creation.box().export(target)
+
+    def refused(run, mesh) -> str:
+        assert cli.main(["retarget", "--run", str(run), "--target", str(mesh)]) == 2
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        return line
+
+    line = refused(runs["skel"], target)
+    assert "phase-1 run" in line and "phase-2 run" in line and "train-dyn" in line
+    assert "`nmjax rig --from RAW` makes a rig in one command" in line
+    assert not (runs["skel"] / "retarget-box").exists()
+    cloud = tmp_path / "cloud.ply"
+    trimesh.PointCloud(np.random.default_rng(0).normal(size=(50, 3))).export(cloud)
+    line = refused(runs["nm"], cloud)
+    assert "cloud.ply" in line and "point cloud (50 points)" in line and "with faces" in line
+    assert "has no vertices" not in line
+
+
+def test_retarget_help_shows_the_defaults(capsys):
+    from nmjax import cli
+
+    assert cli.main(["retarget", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    for default in (
+        "(default: every frame of the source)",
+        "(default: 20000)",
+        "(default: 0)",
+        "(default: the first by name)",
+        "(default: RUN/retarget-TARGET",
+    ):
+        assert default in text

@@ -349,6 +349,14 @@ def test_retarget_scene_poses_the_mesh_per_frame(tmp_path):
 # --- the command --------------------------------------------------------------------------------
 
 
+def test_a_bvh_file_is_named_for_what_view_shows(tmp_path, capsys):
+    bvh = tmp_path / "rig.bvh"
+    bvh.write_text("HIERARCHY\nROOT joint0\n")
+    line = one_error_line(["--run", str(bvh)], capsys)
+    assert "rig.bvh is a .bvh file" in line and ".glb / .gltf" in line
+    assert "does not exist" not in line
+
+
 def test_missing_unfinished_and_foreign_folders_are_one_line_errors(tiny, tmp_path, capsys):
     line = one_error_line(["--run", str(tmp_path / "nope")], capsys)
     assert "nope" in line and "does not exist" in line

@@ -472,6 +472,6 @@ def read_trajectories(path: str | Path) -> dict[str, np.ndarray]:
 
 def motion_format(run: str | Path) -> tuple[float, int]:
     """(frames per second, up axis 0/1/2) of a phase-1 run's keypoint sequences, from its data
-    configuration (`config.frame_rate`)."""
+    configuration (`config.frame_rate`: its recorded `fps`, else the dataset's)."""
     data = load_config(run, SkelTrainConfig).data
-    return frame_rate(data.name, data.sample_rate), data.up_axis
+    return frame_rate(data.name, data.sample_rate, data.fps), data.up_axis

@@ -1,5 +1,6 @@
 """`nmjax prepare-data` and `nmjax synthesize`: datasets in the nmjax layout.
 
+    nmjax prepare-data --from RAW --root OUT [--up z] [--fps 30] [--units m]   (your capture)
     nmjax prepare-data --data synth-hand [--sequences N] [--frames N] [--seed S]
     nmjax prepare-data --data animals --from DT4D_ROOT/animals [--root DIR] [--points 20000]
     nmjax prepare-data --data dfaust --from DFAUST_ROOT [--subjects ID,...] [--overwrite]
@@ -47,35 +48,75 @@ def _downloads_help() -> str:
             f"  {'':<16}nmjax prepare-data --data {name} --from {download.source}{model}",
         ]
     lines += [
-        f"  {'any real set':<16}one folder of .obj/.ply/.off frames per sequence (+ joints.npy)",
-        f"  {'':<16}nmjax prepare-data --data NAME --from RAW_DIR",
+        f"  {'your capture':<16}nmjax prepare-data --from RAW --root OUT [--up z] [--fps 30]",
+        f"  {'':<16}[--units m]: the generic spec `capture`; OUT/meta.json records --up,",
+        f"  {'':<16}--fps and --units, and nmjax train-skel --root OUT reads them",
+        f"  {'any real set':<16}nmjax prepare-data --data NAME --from RAW",
         "",
-        "The split: RAW_DIR/split.json if present, else the published lists for aist, dfaust and",
-        "animals (sequences in neither are left out and counted), else 9:1 by frames. Sequences",
-        "are written one at a time; a rerun skips those already written, --overwrite redoes all.",
+        "RAW holds one entry per sequence: RAW/<seq>/ with one file a frame (sorted by name,",
+        "numbers as numbers), meshes (.obj/.ply/.off) or point clouds (.ply/.obj/.off with",
+        "vertices only, .xyz/.txt with x y z a line, .npy of shape (N, 3), each named with its",
+        "frame number), and optionally joints.npy (T, J, 3); or RAW/<seq>.npy / .npz, one",
+        "(T, N, 3) array. Each frame becomes --points points: a mesh sampled area-uniformly",
+        "on its surface, a point cloud of N points resampled (N > P: P distinct points drawn",
+        "at random; N < P: all N, then P - N drawn again), seeded by --seed, the sequence's",
+        "name and the frame. NaN / inf are refused naming the file, frame and vertex.",
+        "",
+        "The split: RAW/split.json if present (naming only sequences RAW holds), else the",
+        "published lists for aist, dfaust and animals (sequences in neither are left out and",
+        "counted), else 9:1 by frames; a single sequence is cut in two, its last 10% of frames",
+        "(at least one 10-frame training crop) the test sequence <seq>_test, or, too short for",
+        "that, scored on a copy of itself. Sequences are written one at a time; a rerun skips",
+        "those already written, --overwrite redoes all.",
     ]
     return "\n".join(lines)
 
 
 def prepare_data(argv: list[str]) -> int:
     from nmjax.config import DATASETS
-    from nmjax.data import prepare
+    from nmjax.data import layout, prepare
 
     p = parser(
         "prepare-data", "Write a dataset in the layout <root>/<split>/{vertices,joints}/<seq>.npy"
     )
     p.formatter_class = argparse.RawDescriptionHelpFormatter
     p.epilog = _downloads_help()
-    p.add_argument("--data", required=True, help=f"one of {', '.join(sorted(DATASETS))}")
+    p.add_argument(
+        "--data",
+        default=None,
+        help=f"one of {', '.join(sorted(DATASETS))} (default with --from: {layout.CAPTURE}, "
+        "your own capture)",
+    )
     p.add_argument(
         "--from",
         dest="source",
         metavar="DIR",
         type=Path,
-        help="real datasets: the download as it comes (below), or one folder of mesh frames per "
-        "sequence",
+        help="your capture or a real dataset: one folder of mesh or point frames (or one "
+        "(T, N, 3) .npy / .npz) per sequence, or a download as it comes (below)",
     )
     p.add_argument("--root", type=Path, metavar="DIR", help="output folder (default data/<name>)")
+    capture = p.add_argument_group(
+        "your capture (recorded in meta.json; built-in datasets have their own)"
+    )
+    capture.add_argument(
+        "--up",
+        choices=layout.UP_AXES,
+        default=None,
+        help=f"the capture's up axis (default: {layout.DEFAULT_UP})",
+    )
+    capture.add_argument(
+        "--fps",
+        type=float,
+        default=None,
+        help=f"its frames per second (default: {DATASETS[layout.CAPTURE].fps:g})",
+    )
+    capture.add_argument(
+        "--units",
+        choices=tuple(layout.UNITS),
+        default=None,
+        help=f"the unit of its coordinates (default: {layout.DEFAULT_UNITS})",
+    )
     p.add_argument("--seed", type=int, default=0, help="sampling / generation seed")
     p.add_argument(
         "--sequences",
@@ -98,7 +139,12 @@ def prepare_data(argv: list[str]) -> int:
         "owners license them to each user, so nmjax cannot ship them (where to get them: below)",
     )
     p.add_argument("--frames", type=int, help="frames per sequence (default: all)")
-    p.add_argument("--points", type=int, default=prepare.DEFAULT_POINTS, help="points per frame")
+    p.add_argument(
+        "--points",
+        type=int,
+        default=prepare.DEFAULT_POINTS,
+        help=f"points per frame (default: {prepare.DEFAULT_POINTS:,})",
+    )
     p.add_argument(
         "--overwrite",
         action="store_true",
@@ -116,19 +162,16 @@ def prepare_data(argv: list[str]) -> int:
         points=args.points,
         overwrite=args.overwrite,
         body_model=args.body_model,
+        up=args.up,
+        fps=args.fps,
+        units=args.units,
     )
-    if message is None:
-        from nmjax.data.layout import dataset_root
-
-        where = dataset_root(args.data, args.root)
-        print(f"{where} already holds a prepared {args.data!r}; pass --overwrite to replace it")
-        return 0
     print(message)
     return 0
 
 
 def prepare_dataset(
-    name: str,
+    name: str | None,
     *,
     source: Path | None = None,
     root: Path | None = None,
@@ -139,26 +182,48 @@ def prepare_dataset(
     points: int | None = None,
     overwrite: bool = False,
     body_model: Path | None = None,
-) -> str | None:
+    up: str | None = None,
+    fps: float | None = None,
+    units: str | None = None,
+) -> str:
     """Writes dataset `name` into `root` (default data/<name>): generated for a synthetic name,
-    converted from the raw sequences in `source` for a real one.
+    converted from the raw sequences in `source` for a real one, and for `name` None (or
+    "capture") the user's own capture in `source` with its `up`, `fps` and `units`.
 
     The one place that picks the writer by name: `nmjax.data.prepare` converts real sets and
     `nmjax.data.synthetic` generates the others, and neither imports the other.
 
     Returns:
-      The line to report (a real set: its summary), or None when `root` already holds a
-      prepared `name` and not `overwrite` (nothing is changed then).
+      The line to report: a real set's summary, or, when `root` already holds a prepared `name`
+      and not `overwrite`, that it does (nothing is changed then).
 
     Raises:
-      ValueError: an unknown name, counts below their minimum, or `source` given for a synthetic
-        set / missing for a real one.
+      ValueError: an unknown name, counts below their minimum, `source` given for a synthetic
+        set / missing for a real one, --up / --fps / --units for a built-in set.
     """
     from nmjax.config import dataset_spec
     from nmjax.data import prepare
-    from nmjax.data.layout import SYNTHETIC_DATASETS, clear_dataset, dataset_root
+    from nmjax.data.layout import CAPTURE, SYNTHETIC_DATASETS, clear_dataset, dataset_root
 
+    if name is None and source is None:
+        raise ValueError(
+            "give --from RAW, your capture (one folder of mesh or point frames per sequence), or "
+            "--data NAME for a built-in dataset (e.g. --data synth-hand)"
+        )
+    name = CAPTURE if name is None else name
     dataset_spec(name)
+    options = (("up", up), ("fps", fps), ("units", units))
+    given = [f"--{flag}" for flag, value in options if value is not None]
+    if given and name != CAPTURE:
+        raise ValueError(
+            f"{' / '.join(given)}: for your own capture only (prepared without --data); --data "
+            f"{name} has its own frame rate and axes"
+        )
+    if name == CAPTURE and (subjects is not None or body_model is not None):
+        raise ValueError(
+            "--subjects and --body-model read D-FAUST / AIST++ / HanCo downloads; your capture "
+            "takes --sequences NAME,..."
+        )
     points = prepare.DEFAULT_POINTS if points is None else points
     count = sequences if isinstance(sequences, int) else None
     for flag, value, least in (("sequences", count, 1), ("frames", frames, 2)):
@@ -176,12 +241,26 @@ def prepare_dataset(
     if not synthetic_data and source is None:
         raise ValueError(
             f"--data {name} needs --from DIR, the download (see nmjax prepare-data --help) or "
-            "the raw mesh sequences (one folder of .obj/.ply/.off frames per sequence); or use "
+            "the raw sequences (one folder of mesh or point frames per sequence); or use "
             "--data synth-hand"
         )
     root = dataset_root(name, root)
     if (root / "meta.json").is_file() and not overwrite:
-        return None
+        return f"{root} already holds a prepared {name!r}; pass --overwrite to replace it"
+    if name == CAPTURE:
+        summary = prepare.prepare_capture(
+            source,
+            root,
+            up=up,
+            fps=fps,
+            units=units,
+            points=points,
+            seed=seed,
+            sequences=sequences,
+            max_frames=frames,
+            overwrite=overwrite,
+        )
+        return summary.line()
     if not synthetic_data:
         summary = prepare.prepare_real(
             name,

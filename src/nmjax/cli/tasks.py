@@ -3,7 +3,7 @@
     nmjax generate    --run RUN [--cond 5] [--gen 25] [--samples 3] [--inputs 2] [--voxels]
                       (--gen 300 works; past the end of a test sequence its observed panel holds)
     nmjax interpolate --run RUN [--gap 10] [--trajectories 16] [--inputs 2] [--vrnn-run RUN2]
-    nmjax retarget    --run RUN --target MESH [--source SEQ] [--frames 30]
+    nmjax retarget    --run RUN --target MESH [--source SEQ] [--frames N (default: all)]
 
 Each takes its inputs from the phase-1 run's exported test keypoints, or with `--source-file
 POINTS.npy [--source-rate N]` from a point-sequence file (T, N, >= 3) normalised and detected as
@@ -17,11 +17,13 @@ from __future__ import annotations
 from nmjax.cli import Parser, parser, positive
 
 
-def _parser(command: str, description: str) -> Parser:
+def _parser(command: str, description: str, out: str | None = None) -> Parser:
     p = parser(command, description)
     p.add_argument("--run", required=True, help="phase-2 run folder (train-dyn, model nm)")
-    p.add_argument("--out", default=None, help=f"output folder (default RUN/{command})")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--out", default=None, help=f"output folder (default: {out or f'RUN/{command}'})"
+    )
+    p.add_argument("--seed", type=int, default=0, help="sampling seed (default: 0)")
     p.add_argument(
         "--source-file",
         default=None,
@@ -77,9 +79,25 @@ def interpolate(argv: list[str]) -> int:
 
 
 def retarget(argv: list[str]) -> int:
-    p = _parser("retarget", "Retarget a test motion onto a mesh (Eqs. 24-25, LBS).")
-    p.add_argument("--target", required=True, help="target mesh (.obj, .ply, ...)")
-    p.add_argument("--source", default=None, help="test sequence name (default: first)")
-    p.add_argument("--frames", type=int, default=30, help="frames of the source motion")
-    p.add_argument("--points", type=int, default=20000, help="points sampled on the mesh")
+    p = _parser(
+        "retarget",
+        "Retarget a test motion onto a mesh (Eqs. 24-25, LBS).",
+        out="RUN/retarget-TARGET, TARGET the mesh's file name without its suffix",
+    )
+    p.add_argument(
+        "--target", required=True, help="target mesh with faces (.obj, .ply, .off, .stl, ...)"
+    )
+    p.add_argument("--source", default=None, help="test sequence name (default: the first by name)")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames of the source motion, from its first (default: every frame of the source)",
+    )
+    p.add_argument(
+        "--points",
+        type=int,
+        default=20000,
+        help="points sampled on the mesh to detect its joints (default: 20000)",
+    )
     return _run(p, argv, "run_retarget", ("frames", "points", "source_rate"))

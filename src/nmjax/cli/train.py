@@ -44,7 +44,8 @@ SKEL_PRESETS_HELP = (
     "default: the paper's network and the release's recipe (batch 3 of 10 frames at G=64; the "
     "dataset's epochs: aist, hanco, animals, panda 200, dfaust 2000, an epoch ceil(sequences / "
     "3) steps; Adam at 4e-4 restarted every epoch, no clipping, 0.25x and 0.1x at the "
-    "dataset's decay epochs); cpu: G=32, C=16, batch 2 of 6 frames, 2,200 steps at lr 1e-3, one "
+    "dataset's decay epochs; a capture 20,000 steps, one Adam state, decays at 30%% and 70%%); "
+    "cpu: G=32, C=16, batch 2 of 6 frames, 2,200 steps at lr 1e-3, one "
     "Adam state, clipping at 1.0, decays at steps 1,400 and 1,900 (what measured better on 2 "
     "cores), on synth-hand also w_vol 10 and keypoints from heatmap^2; tiny: for tests. "
     "Ignored with --resume"
@@ -117,9 +118,15 @@ def _initialize(args: argparse.Namespace) -> None:
 
 
 def skel_config(args: argparse.Namespace):
-    """The preset (or, with --resume, the run's saved config) plus the command-line options."""
-    from nmjax.config import SkelTrainConfig, skel_preset, with_steps
+    """The preset (or, with --resume, the run's saved config) plus the command-line options.
+
+    A new run takes its dataset from --data, else from the meta.json of --root (a prepared
+    capture names the `capture` spec), else synth-hand, and the up axis and frame rate that the
+    set's meta.json records (`nmjax.data.layout.training_config`).
+    """
+    from nmjax.config import SkelTrainConfig, with_steps
     from nmjax.config_io import apply_overrides, replace_fields
+    from nmjax.data.layout import training_config
     from nmjax.train import skel
 
     if args.resume:
@@ -130,7 +137,8 @@ def skel_config(args: argparse.Namespace):
                 f"{args.data} or start a new run"
             )
     else:
-        cfg = skel_preset(args.data or "synth-hand", args.preset)
+        name = args.data or (None if args.root is not None else "synth-hand")
+        cfg = training_config(name, args.root, args.preset)
     if args.root is not None:
         cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, root=args.root))
     cfg = apply_overrides(cfg, args.overrides)
@@ -150,8 +158,19 @@ def skel_parser() -> Parser:
     from nmjax.config import DATASETS
 
     p = parser("train-skel", "Phase 1: train the keypoint detector and affinity (paper Eq. 23).")
-    p.add_argument("--data", default=None, help=f"one of {', '.join(DATASETS)} (synth-hand)")
-    p.add_argument("--root", default=None, help="dataset folder (default data/DATA)")
+    p.add_argument(
+        "--data",
+        default=None,
+        help=f"one of {', '.join(DATASETS)} (default: the one --root's meta.json names, a "
+        "capture prepared with `nmjax prepare-data --from RAW --root DIR`; without --root "
+        "synth-hand)",
+    )
+    p.add_argument(
+        "--root",
+        default=None,
+        help="dataset folder (default data/DATA); its meta.json's up axis and frame rate are the "
+        "run's",
+    )
     p.add_argument(
         "--fit-minutes",
         type=float,

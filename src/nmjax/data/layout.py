@@ -7,7 +7,9 @@
     <root>/split.json                   optional: {"train": [seq, ...], "test": [seq, ...]}
     <root>/meta.json                    optional: joint_names, parents (the true tree; its
                                         root -1, 2**32 - 1 or its own index), sample_rate, ...;
-                                        written last, so that it marks a finished set
+                                        a capture's (`capture_meta`) also up, fps, units and
+                                        metres_per_unit; written last, so that it marks a
+                                        finished set
     <root>/preparing.json               only while `nmjax prepare-data` has not finished: the
                                         settings a rerun must repeat to continue
 
@@ -15,12 +17,18 @@ A set may also keep all its sequences in `<root>/vertices/` (and `<root>/joints/
 folders; `split_by_frames` then divides them 9:1. `<root>` defaults to `data/<name>` relative to
 the working directory, or `$NMJAX_DATA/<name>` when the environment variable is set.
 
+A user's own capture is prepared under the generic spec `capture` (`nmjax.config.DATASETS`); its
+meta.json names the spec (`name`) and records the capture's up axis, frame rate and units, which
+every command reading the set takes from there (`training_config`). A single sequence is cut in
+two for a test split; meta.json's `cut_from` says which frames of it each part holds.
+
 The readers (`nmjax.data.datasets`) and the writers (`nmjax.data.prepare`, the synthetic
 generator `nmjax.data.synthetic`) all go through this module, so they cannot disagree.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -31,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from nmjax import atomic
-from nmjax.config import DATASETS, dataset_spec
+from nmjax.config import DATASETS, SkelTrainConfig, dataset_spec, skel_preset
 from nmjax.parents import parents_from_external
 
 SPLITS = ("train", "test")
@@ -60,6 +68,104 @@ def dataset_root(name: str, root: str | os.PathLike | None = None) -> Path:
         return Path(root)
     base = os.environ.get("NMJAX_DATA")
     return Path(base) / name if base else Path("data") / name
+
+
+# --- a user's capture ------------------------------------------------------------------------
+
+CAPTURE = "capture"  # the generic spec of a user's own capture
+UP_AXES = ("x", "y", "z")
+# Metres per unit of the lengths a capture may be given in (`--units`).
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254, "ft": 0.3048}
+DEFAULT_UP, DEFAULT_UNITS = "z", "m"  # nmjax's own bodies are z up; glTF's unit is the metre
+
+
+def capture_meta(up: str | None = None, fps: float | None = None, units: str | None = None):
+    """The meta.json entries of a user's capture: its up axis ("x" / "y" / "z", default z),
+    frames per second (default the `capture` spec's, 30) and length unit (default m), with the
+    metres per unit.
+
+    Raises:
+      ValueError: an unknown axis or unit, or fps not > 0 (naming the option).
+    """
+    up = DEFAULT_UP if up is None else up
+    units = DEFAULT_UNITS if units is None else units
+    fps = dataset_spec(CAPTURE).fps if fps is None else float(fps)
+    if up not in UP_AXES:
+        raise ValueError(f"--up must be one of {', '.join(UP_AXES)}, got {up!r}")
+    if units not in UNITS:
+        raise ValueError(f"--units must be one of {', '.join(UNITS)}, got {units!r}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"--fps must be > 0, got {fps}")
+    return {"up": up, "fps": fps, "units": units, "metres_per_unit": UNITS[units]}
+
+
+def recorded_data_fields(meta: dict, where: str) -> dict:
+    """The `DataConfig` fields a set's meta.json records: "up_axis" (0/1/2) from `up` and "fps"
+    from `fps`, each where present.
+
+    Raises:
+      ValueError naming `where`: an `up` that is not x / y / z, an `fps` that is not > 0.
+    """
+    if not isinstance(meta, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(meta).__name__}")
+    fields = {}
+    if "up" in meta:
+        if meta["up"] not in UP_AXES:
+            axes = ", ".join(UP_AXES)
+            raise ValueError(f"{where}: `up` must be one of {axes}, got {meta['up']!r}")
+        fields["up_axis"] = UP_AXES.index(meta["up"])
+    if "fps" in meta:
+        fps = meta["fps"]
+        if isinstance(fps, bool) or not isinstance(fps, int | float) or not fps > 0:
+            raise ValueError(f"{where}: `fps` must be a number > 0, got {fps!r}")
+        fields["fps"] = float(fps)
+    return fields
+
+
+def prepared_name(root: str | os.PathLike) -> str:
+    """The dataset spec a prepared folder was written for: its meta.json's `name`.
+
+    Raises:
+      FileNotFoundError: `root` holds no meta.json (no finished preparation).
+      ValueError: meta.json names no registered spec.
+    """
+    path = Path(root) / "meta.json"
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"{root} holds no prepared dataset (no meta.json); prepare your capture with `nmjax "
+            f"prepare-data --from RAW --root {root}`, or name a dataset with --data"
+        )
+    meta = read_meta_file(path)
+    name = meta.get("name") if isinstance(meta, dict) else None
+    if name not in DATASETS:
+        raise ValueError(
+            f"{path} names no dataset spec (`name`: {name!r}); give --data NAME (one of "
+            f"{', '.join(sorted(DATASETS))})"
+        )
+    return name
+
+
+def training_config(
+    name: str | None = None, root: str | os.PathLike | None = None, preset: str = "default"
+) -> SkelTrainConfig:
+    """The phase-1 preset of a prepared set: dataset `name` (default: the one `root`'s meta.json
+    names, `prepared_name`), reading `root` when given, with the up axis and frame rate that the
+    set's meta.json records (`recorded_data_fields`; a capture records both).
+
+    Raises:
+      FileNotFoundError, ValueError: as `prepared_name` and `recorded_data_fields`; neither
+        `name` nor `root` given.
+    """
+    if name is None:
+        if root is None:
+            raise ValueError("training_config needs a dataset name or a prepared folder")
+        name = prepared_name(root)
+    cfg = skel_preset(name, preset)
+    folder = dataset_root(name, root)
+    fields = recorded_data_fields(read_meta(name, root), str(folder / "meta.json"))
+    if root is not None:
+        fields["root"] = str(root)
+    return dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, **fields))
 
 
 # --- splits -------------------------------------------------------------------------------------

@@ -10,8 +10,14 @@ changed), so that an interrupted preparation of a large download continues where
 `<root>/preparing.json` records the settings of an unfinished preparation, and a rerun with other
 settings is refused (`--overwrite` starts again). `split.json` and `meta.json` come last.
 
-Surface points: `nmjax.data.meshes.sample_surface` samples one frame area-uniformly (trimesh)
-with a seed from `sequence_seeds`, which depends on the sequence's name and frame only, so that
+A single sequence split 9:1 by frames would leave no test split, so it is cut in two instead
+(`hold_out_test`): its last 10% of frames, at least one training crop long, become the test
+sequence `<seq>_test`; one too short for that is scored on a copy of itself, `<seq>_test`, and
+the summary says which.
+
+Surface points: `nmjax.data.meshes.sample_surface` samples one mesh frame area-uniformly
+(trimesh), `nmjax.data.prepare.resample_points` resamples a point-cloud frame, each with a seed
+from `sequence_seeds`, which depends on the sequence's name and frame only, so that
 preparing a part of a set (`--sequences`, `--frames`, `--subjects`) gives the same bytes as
 preparing all of it.
 """
@@ -21,15 +27,16 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from nmjax import atomic
-from nmjax.config import DATASETS
+from nmjax.config import DATASETS, PRESETS, skel_preset
 from nmjax.data import layout, splits
 from nmjax.data.meshes import sample_surface
 
@@ -70,6 +77,7 @@ class Summary:
     seconds: float
     left_out: list[str]
     notes: tuple[str, ...] = ()  # what the reader adds (AIST++: the ignore list, ...)
+    source: Path | None = None  # the --from folder
 
     def line(self) -> str:
         done = self.written + self.skipped
@@ -82,6 +90,12 @@ class Summary:
         if self.left_out:
             shown = ", ".join(self.left_out[:5]) + (", ..." if len(self.left_out) > 5 else "")
             text += f"; {len(self.left_out)} in neither published list, left out: {shown}"
+        if not self.split["test"]:
+            where = "split.json" if self.source is None else self.source / "split.json"
+            text += (
+                "; no test sequence, and nmjax train-skel stops without one (it validates and "
+                f'scores on it): list one under "test" in {where}'
+            )
         return "; ".join([text, *self.notes])
 
 
@@ -160,24 +174,42 @@ def select_sequences(
     return picked
 
 
+SPLIT_BY_FRAMES = "9:1 by frames"  # the rule `choose_split` names when nothing else applies
+
+
 def choose_split(
-    name: str, frame_counts: dict[str, int], source: Path, *, published: bool
+    name: str,
+    frame_counts: dict[str, int],
+    source: Path,
+    *,
+    published: bool,
+    available: Collection[str] | None = None,
 ) -> tuple[dict[str, list[str]], list[str], str]:
     """The train/test split of the sequences `frame_counts` (name -> frames).
 
-    In order: `source/split.json` when present (every sequence must be in it); the published
+    In order: `source/split.json` when present (every sequence must be in it, and it may name
+    only sequences `source` holds: `available`, default those of `frame_counts`); the published
     lists of `name` (`nmjax.data.splits`) when `published` and the set has them; else 9:1 by
-    frames.
+    frames (`SPLIT_BY_FRAMES`).
 
     Returns:
       (split, names left out: in neither published list, the rule that was used).
 
     Raises:
-      ValueError: a sequence missing from split.json, or every sequence in neither published list.
+      ValueError: a sequence missing from split.json, a name in it that `source` lacks, or every
+        sequence in neither published list.
     """
     split_file = source / "split.json"
     if split_file.is_file():
         split = layout.read_split_file(split_file)
+        held = set(frame_counts if available is None else available)
+        unknown = sorted({seq for s in layout.SPLITS for seq in split[s]} - held)
+        if unknown:
+            shown = ", ".join(sorted(held)[:5]) + (", ..." if len(held) > 5 else "")
+            raise ValueError(
+                f"{split_file} names {', '.join(unknown[:5])}, which {source} does not hold (it "
+                f"holds {shown}); correct or remove the name"
+            )
         split = {s: sorted(seq for seq in split[s] if seq in frame_counts) for s in layout.SPLITS}
         unlisted = sorted(set(frame_counts) - set(split["train"]) - set(split["test"]))
         if unlisted:
@@ -192,7 +224,66 @@ def choose_split(
                 f"is in the published {name} split (listed by {unit}); is it the {name} download?"
             )
         return split, left_out, f"published {name} split"
-    return layout.split_by_frames(frame_counts), [], "9:1 by frames"
+    return layout.split_by_frames(frame_counts), [], SPLIT_BY_FRAMES
+
+
+def held_out_frames(name: str, num_frames: int) -> int:
+    """Frames `hold_out_test` holds out of a single sequence of `num_frames` frames of dataset
+    `name`: the last 10% (`layout.TEST_FRACTION`), at least the longest training crop of any
+    preset (its frames at the dataset's sample rate; 10 frames at rate 1)."""
+    crop = max(skel_preset(name, preset).data.frames for preset in PRESETS)
+    span = (crop - 1) * DATASETS[name].sample_rate + 1
+    return max(math.ceil(layout.TEST_FRACTION * num_frames), span)
+
+
+def hold_out_test(
+    name: str, seq: SourceSequence, num_frames: int, seed: int
+) -> tuple[list[SourceSequence], dict[str, dict], str]:
+    """A single sequence as a train and a test sequence (9:1 by frames would leave no test).
+
+    The last `held_out_frames` frames become `<seq>_test`, the rest `<seq>`, when that rest is at
+    least as long as the test part (a training crop); a shorter sequence stays whole and
+    `<seq>_test` is a copy of it, scored on the frames it trains on. Both parts are sliced from
+    one read of the sequence with its own seeds, so they hold the points a preparation of the
+    whole sequence would.
+
+    Returns:
+      (the two parts, train part first; meta.json's `cut_from`, {part: {"sequence": the name,
+      "frames": [first, end)}}; the rule, for the summary and meta.json).
+    """
+    held = held_out_frames(name, num_frames)
+    test_name = f"{seq.name}_test"
+    if num_frames - held >= held:
+        cut = num_frames - held
+        ranges = {seq.name: [0, cut], test_name: [cut, num_frames]}
+        rule = (
+            f"one sequence: its last {held} of {num_frames} frames (10%, at least a training "
+            f"crop) are the test sequence {test_name}"
+        )
+    else:
+        ranges = {seq.name: [0, num_frames], test_name: [0, num_frames]}
+        rule = (
+            f"one sequence of {num_frames} frames, too short to hold out {held} (that needs "
+            f"{2 * held}): {test_name} is a copy of it, so its test scores are on training frames"
+        )
+    whole: dict[str, np.ndarray | None] = {}
+
+    def part(lo: int, hi: int, last: bool) -> ReadArrays:
+        def read(points: int, seeds: np.ndarray) -> dict[str, np.ndarray | None]:
+            if not whole:  # the part's own seeds give way to the whole sequence's
+                whole.update(seq.read(points, sequence_seeds(seed, seq.name, num_frames)))
+            arrays = {k: None if v is None else v[lo:hi] for k, v in whole.items()}
+            if last:
+                whole.clear()
+            return arrays
+
+        return read
+
+    parts = [
+        SourceSequence(part_name, hi - lo, part(lo, hi, part_name == test_name))
+        for part_name, (lo, hi) in ranges.items()
+    ]
+    return parts, {k: {"sequence": seq.name, "frames": v} for k, v in ranges.items()}, rule
 
 
 # --- writing -------------------------------------------------------------------------------------
@@ -282,6 +373,7 @@ def write_sequences(
     published: bool = False,
     meta: dict | None = None,
     overwrite: bool = False,
+    available: Collection[str] | None = None,
 ) -> Summary:
     """Writes `sequences` (already selected) of dataset `name` into the layout under `root`.
 
@@ -298,6 +390,11 @@ def write_sequences(
       meta: further entries for meta.json (the source format, the source's own meta.json).
       overwrite: clear what `root` holds (`layout.clear_dataset`) once the split is chosen,
         instead of skipping the sequences already written.
+      available: every sequence name `source` holds, before the selection: a split.json may
+        name these only (default: the names of `sequences`).
+
+    A single sequence split by frames is cut in two (`hold_out_test`); meta.json's `cut_from`
+    records the frames of each part.
 
     Returns:
       the `Summary`.
@@ -313,7 +410,15 @@ def write_sequences(
     short = [seq for seq, count in frames.items() if count < 2]
     if short:
         raise ValueError(f"--from {source}: sequences with fewer than 2 frames: {short[:5]}")
-    split, left_out, rule = choose_split(name, frames, source, published=published)
+    split, left_out, rule = choose_split(
+        name, frames, source, published=published, available=available
+    )
+    cut_from = None
+    if len(sequences) == 1 and rule == SPLIT_BY_FRAMES:
+        (whole,) = sequences
+        sequences, cut_from, rule = hold_out_test(name, whole, frames[whole.name], seed)
+        frames = {s.name: s.num_frames for s in sequences}
+        split = {"train": [sequences[0].name], "test": [sequences[1].name]}
     if overwrite:
         layout.clear_dataset(root)
     settings = {"name": name, "points": points, "seed": seed, "source": str(source)}
@@ -355,6 +460,8 @@ def write_sequences(
         left_out=left_out,
         frames=kept,
     )
+    if cut_from is not None:
+        info["cut_from"] = cut_from
     layout.write_index(root, split, info)
     (root / layout.PREPARING_FILE).unlink(missing_ok=True)
     return Summary(
@@ -368,4 +475,5 @@ def write_sequences(
         points=sum(kept.values()) * points,
         seconds=time.perf_counter() - begin,
         left_out=left_out,
+        source=source,
     )

@@ -22,9 +22,13 @@ from nmjax.train import trained
 
 
 def pick_inputs(
-    trajectories: dict[str, np.ndarray], count: int, frames: int, names: list[str] | None = None
+    trajectories: dict[str, np.ndarray],
+    count: int,
+    frames: int | None,
+    names: list[str] | None = None,
 ) -> tuple[list[str], np.ndarray]:
-    """The first `count` sequences (sorted names, or `names`), frames 0..frames-1 of each.
+    """The first `count` sequences (sorted names, or `names`), frames 0..frames-1 of each
+    (`frames` None: every frame of the longest of them).
 
     Sequences shorter than `frames` are padded with their last frame. Returns (names, (I, F, K, 4)).
     """
@@ -33,6 +37,8 @@ def pick_inputs(
     if missing:
         raise ValueError(f"no test sequence named {missing}; available: {sorted(trajectories)}")
     chosen = chosen[:count]
+    if frames is None:
+        frames = max(len(trajectories[name]) for name in chosen)
     crops = [pad_with_last(trajectories[name][:frames], frames) for name in chosen]
     return chosen, np.stack(crops).astype(np.float32)
 
@@ -58,7 +64,7 @@ class TaskClips:
 
 
 def point_file_keypoints(
-    detector: trained.Detector, path: str | os.PathLike, frames: int, sample_rate: int
+    detector: trained.Detector, path: str | os.PathLike, frames: int | None, sample_rate: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point-sequence file's motion as the release's demos take it: `frames` frames from the
     first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
@@ -68,7 +74,7 @@ def point_file_keypoints(
     Args:
       detector: the phase-1 detector.
       path: a (T, N, >= 3) .npy (`nmjax.data.meshes.load_point_sequence`).
-      frames: F, the crop length.
+      frames: F, the crop length; None: every `sample_rate`-th frame of the file.
       sample_rate: the frame step.
 
     Returns:
@@ -82,6 +88,8 @@ def point_file_keypoints(
     from nmjax.data.voxelize import voxelize
 
     points = load_point_sequence(path)
+    if frames is None:
+        frames = (len(points) - 1) // sample_rate + 1
     span = (frames - 1) * sample_rate + 1
     if len(points) < span:
         raise ValueError(
@@ -95,10 +103,11 @@ def point_file_keypoints(
 
 
 def source_file_clip(
-    skel_run: Path, path: str | os.PathLike, frames: int, sample_rate: int | None
+    skel_run: Path, path: str | os.PathLike, frames: int | None, sample_rate: int | None
 ) -> tuple[str, np.ndarray, np.ndarray]:
     """(name, keypoints (1, F, K, 4), first voxel frame (1, G, G, G)) of `point_file_keypoints`
-    with the phase-1 run's detector; `sample_rate` None takes the run's."""
+    with the phase-1 run's detector; `sample_rate` None takes the run's, `frames` None every
+    frame at that rate."""
     detector = trained.Detector.load(skel_run)
     rate = detector.cfg.data.sample_rate if sample_rate is None else sample_rate
     keypoints, voxels = point_file_keypoints(detector, path, frames, rate)

@@ -221,7 +221,7 @@ def run_retarget(
     target: str | Path,
     *,
     source: str | None = None,
-    frames: int = 30,
+    frames: int | None = None,
     points: int = 20000,
     seed: int = 0,
     out: str | Path | None = None,
@@ -230,10 +230,10 @@ def run_retarget(
 ) -> Path:
     """Retargets a test motion of the run onto a target mesh (Fig. 6, appendix D.4).
 
-    The source motion is the test sequence `source` (default the first), or with `source_file`
-    the first `frames` frames (every `source_rate`-th, default the run's sample rate) of that
-    point-sequence file, detected as one crop as the release's retargeting demo does
-    (`point_file_keypoints`; the demo takes 40 frames at rate 1).
+    The source motion is the first `frames` frames (None: every frame) of the test sequence
+    `source` (default the first), or with `source_file` of that point-sequence file (every
+    `source_rate`-th, default the run's sample rate), detected as one crop as the release's
+    retargeting demo does (`point_file_keypoints`; the demo takes 40 frames at rate 1).
 
     1. Target skeleton: `points` surface samples of the mesh, normalised (DESIGN section 4),
        voxelised, keypoints by the phase-1 detector; topology = the run's skeleton.
@@ -253,6 +253,12 @@ def run_retarget(
     from nmjax.data.normalize import apply_box, normalization_box, undo_box
     from nmjax.skeleton import skin_weights
 
+    if run_folder.run_kind(run) == "skel":
+        raise ValueError(
+            f"--run {run} is a phase-1 run (nmjax train-skel); retarget needs a phase-2 run "
+            f"trained on it (nmjax train-dyn --skel-run {run}); `nmjax rig --from RAW` makes a "
+            "rig in one command"
+        )
     mesh = load_mesh(target)
     model, cfg, skel_run = trained.load_phase2(run)
     out = Path(out) if out is not None else Path(run) / f"retarget-{Path(target).stem}"

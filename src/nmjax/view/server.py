@@ -39,12 +39,19 @@ def folder_kind(folder: str | Path) -> str:
 
     Raises:
       FileNotFoundError: no such folder, or one that is neither a run nor a retarget output.
+      ValueError: a file that is not .glb / .gltf (a .bvh, say).
     """
     from nmjax import run_folder, tasks
 
     folder = Path(folder)
     if folder.is_file() and folder.suffix.lower() in GLTF_SUFFIXES:
         return "gltf"
+    if folder.is_file():
+        raise ValueError(
+            f"--run {folder} is a {folder.suffix or 'plain'} file; nmjax view shows the .glb / "
+            ".gltf files of `nmjax export` (write one with `nmjax export --run RUN --out "
+            "RIG.glb`), run folders and `nmjax retarget` outputs"
+        )
     if not folder.is_dir():
         raise FileNotFoundError(
             f"--run {folder} does not exist; give a run folder of `nmjax train-skel` or "

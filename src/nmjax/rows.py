@@ -85,6 +85,8 @@ class RowStore:
       since: the last commit that changed what a row computes.
       key: the row fields that name a row (e.g. ("body", "seed", "variant")).
       config_class: the configuration dataclass a row's "config" is read through.
+      repo: the git clone whose history `since` is looked up in (default: the one holding
+        `path`).
     """
 
     def __init__(
@@ -94,8 +96,10 @@ class RowStore:
         since: str,
         key: tuple[str, ...],
         config_class: type | None = None,
+        repo: str | os.PathLike | None = None,
     ):
         self.path = Path(path)
+        self.repo = Path(repo) if repo is not None else self.path.parent
         self.metrics = dict(metrics)
         self.since = since
         self.key = key
@@ -129,7 +133,7 @@ class RowStore:
             == comparable(config, self.config_class)
             and stamp.get("metrics") == self.metrics
             and stamp.get("dirty") is False
-            and descends_from(stamp.get("commit"), self.since, self.path.parent)
+            and descends_from(stamp.get("commit"), self.since, self.repo)
             and (extra is None or extra(row))
         )
 

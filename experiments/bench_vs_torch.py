@@ -54,7 +54,7 @@ or one (B*T, G^3, K) distance matrix, next to 3D convolutions over B*T frames of
 - `weights.vol_target="joints"` (ground-truth joint supervision) is not implemented: the twin
   refuses that configuration.
 
-The network is the released one, as nmjax's is (DESIGN section 6): LeakyReLU of slope 0.01,
+The network is the released one, as nmjax's is (docs/architecture.md §6): LeakyReLU of slope 0.01,
 residual blocks that return branch + skip without an activation and put a GroupNorm after a
 projection skip, a residual block before every upsampling of the hourglass, heads ending in a
 LeakyReLU and only the fusion in softplus, GroupNorm epsilon 1e-5 (torch's default).

@@ -1,5 +1,5 @@
-"""The detector is the released network (DESIGN section 6): its layers, activations, norms and
-initialisation pinned without the release itself (parameter counts from its C = 128 network)."""
+"""The detector is the released network (docs/architecture.md §6): its layers, activations, norms
+and initialisation pinned without the release itself (parameter counts from its C = 128 network)."""
 
 from __future__ import annotations
 

@@ -218,7 +218,7 @@ def test_best_of_s_gradient_equals_differentiating_all_samples():
     assert any(float(jnp.abs(g).sum()) > 0 for g in jax.tree.leaves(got))
 
 
-# --- the release's model (DESIGN section 8): each difference pinned without the release -------
+# --- the release's model (docs/architecture.md §8): each difference pinned without the release ----
 
 
 def test_mlp_hidden_activation_is_leaky_relu_with_slope_0_01():

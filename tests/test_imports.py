@@ -206,7 +206,7 @@ def test_a_trained_model_has_one_owner_below_both_trainers():
 
 def test_no_module_is_over_700_lines_except_the_kernel_collection():
     # A file a newcomer can read in one sitting; the CPU convolution kernels are one collection
-    # of alternatives kept side by side on purpose (DESIGN section 2).
+    # of alternatives kept side by side on purpose (docs/architecture.md §2).
     long = {
         name: lines
         for name, path in MODULES.items()

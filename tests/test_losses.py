@@ -125,7 +125,7 @@ def test_trajectory_cost_parallel_and_opposite():
     opposite = np.stack([np.c_[path, ones], np.c_[-path, ones]], axis=1)[None]
     np.testing.assert_allclose(losses.trajectory_cost(jnp.asarray(parallel)), 0.0, atol=1e-6)
     # Opposite velocities and accelerations: (1 - (-1)) / 2 + (1 - (-1)) / 2 = 2 (the released
-    # scale, DESIGN §5); the printed Eq. 14's scale halves it.
+    # scale, docs/architecture.md §5); the printed Eq. 14's scale halves it.
     cost = np.asarray(losses.trajectory_cost(jnp.asarray(opposite)))
     np.testing.assert_allclose(cost, [[0.0, 2.0], [2.0, 0.0]], atol=1e-6)
     printed = np.asarray(losses.trajectory_cost(jnp.asarray(opposite), printed_scale=True))

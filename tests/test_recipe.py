@@ -1,5 +1,5 @@
-"""The release's training recipe (DESIGN 6b): epochs, learning rate and decays, no clipping, and
-Adam restarted at every epoch boundary inside the compiled step."""
+"""The release's training recipe (docs/architecture.md §6b): epochs, learning rate and decays, no
+clipping, and Adam restarted at every epoch boundary inside the compiled step."""
 
 from __future__ import annotations
 

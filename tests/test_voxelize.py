@@ -1,4 +1,5 @@
-"""DESIGN section 4 conventions of nmjax.data.voxelize, against hand values and a loop reference."""
+"""docs/architecture.md §4 conventions of nmjax.data.voxelize, against hand values and a loop
+reference."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from nmjax.metrics import voxel_points
 
 
 def reference_voxelize(points: np.ndarray, grid: int) -> np.ndarray:
-    """One point at a time, with Python floats: the formula as written in DESIGN section 4."""
+    """One point at a time, with Python floats: the formula as written in docs/architecture.md
+    §4."""
     out = np.zeros((grid, grid, grid), dtype=np.float32)
     for p in points:
         idx = [min(max(math.floor((float(c) + 1.0) / (2.0 / grid + 1e-5)), 0), grid - 1) for c in p]

@@ -184,7 +184,7 @@ class LossWeights:
 
 @dataclass(frozen=True)
 class DetectorConfig:
-    """Keypoint detector of paper Fig. 8-9 (DESIGN section 6)."""
+    """Keypoint detector of paper Fig. 8-9 (docs/architecture.md §6)."""
 
     grid: int = 64  # G; heatmaps live on g = G / heatmap_stride
     # 4: the paper (16^3 heatmaps at G=64). 2: one pooling level less before the hourglass and
@@ -220,9 +220,9 @@ class OptimConfig:
     """The optimiser both phases train with (`nmjax.train.optim`): Adam with a piecewise-constant
     learning rate, optional clipping, Adam's restarts and an optional weight average.
 
-    The release's recipe (DESIGN 6b) is Adam at 4e-4 for every dataset and phase, created anew
-    every epoch, no clipping, the rate 0.25x then 0.1x of the initial from each decay epoch
-    (phase 1; phase 2 does not decay).
+    The release's recipe (docs/architecture.md §6b) is Adam at 4e-4 for every dataset and phase,
+    created anew every epoch, no clipping, the rate 0.25x then 0.1x of the initial from each decay
+    epoch (phase 1; phase 2 does not decay).
     """
 
     learning_rate: float = 4e-4
@@ -245,8 +245,8 @@ class OptimConfig:
 class LoopConfig:
     """How long a run trains and what the one training loop (`nmjax.train.loop`) reports.
 
-    The run's length is counted as the release counts it (DESIGN 6b). epochs > 0: that many
-    epochs of `steps_per_epoch` steps; `steps_per_epoch`, `steps` (and the optimiser's
+    The run's length is counted as the release counts it (docs/architecture.md §6b). epochs > 0:
+    that many epochs of `steps_per_epoch` steps; `steps_per_epoch`, `steps` (and the optimiser's
     `lr_milestones`) are filled in from the training set when the run starts (`resolve_epochs`)
     and config.json records them. epochs = 0: `steps` as given (a step count instead of epochs).
     """
@@ -288,7 +288,7 @@ class SkelTrainConfig:
 
 @dataclass(frozen=True)
 class DynamicsConfig:
-    """Dynamics module of Sec. 4 and Fig. 10-11 (DESIGN section 8)."""
+    """Dynamics module of Sec. 4 and Fig. 10-11 (docs/architecture.md §8)."""
 
     model: str = "nm"  # "nm": rotations + forward kinematics; "vrnn": positional baseline
     latent: int = 128  # D_z
@@ -463,10 +463,10 @@ def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainC
 def steps_per_epoch(num_sequences: int, batch_size: int) -> int:
     """Optimizer steps in one epoch: ceil(num_sequences / batch_size).
 
-    An epoch is one random crop of every training sequence, shuffled (DESIGN 6b). The release
-    ends an epoch with a partial batch; a compiled step has a fixed batch, so here the last batch
-    of an epoch is filled with the first crops of the next epoch's shuffle (the crop stream runs
-    on without a break, `data.pipeline`): no crop is dropped, and every epoch is ceil(N / B)
+    An epoch is one random crop of every training sequence, shuffled (docs/architecture.md §6b). The
+    release ends an epoch with a partial batch; a compiled step has a fixed batch, so here the last
+    batch of an epoch is filled with the first crops of the next epoch's shuffle (the crop stream
+    runs on without a break, `data.pipeline`): no crop is dropped, and every epoch is ceil(N / B)
     steps (27 sequences at B = 3: 9; 28: 10).
     """
     if num_sequences < 1 or batch_size < 1:

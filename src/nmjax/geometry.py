@@ -1,5 +1,5 @@
 """Rotations, forward kinematics and linear blend skinning (paper Eqs. 1-2, 24-25, appendix A.4;
-DESIGN §8-9): the one home of each in nmjax.
+docs/architecture.md §8-9): the one home of each in nmjax.
 
 Rotation matrices act on column vectors (`R @ d`); their columns are the rotated x, y, z axes.
 Quaternions are (w, x, y, z). Every JAX function is pure and works under `jit`, `vmap` and `grad`

@@ -1,9 +1,10 @@
-"""Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps (DESIGN §6),
-and the affinity between keypoints: from its free parameters (Eq. 12), combined over N (influence).
+"""Keypoint maps: coordinate grids, heatmaps -> keypoints, keypoints -> gaussian maps
+(docs/architecture.md §6), and the affinity between keypoints: from its free parameters (Eq. 12),
+combined over N (influence).
 
-Conventions (DESIGN §4): the coordinate of an n-cell axis is `linspace(-1, 1, n)`, axes in 'ij'
-order (grid axis 0 is x); keypoints are `(..., K, 4)` with xyz in the normalised cube and the
-intensity alpha last. Everything here is pure and works under `jit`, `vmap` and `grad`.
+Conventions (docs/architecture.md §4): the coordinate of an n-cell axis is `linspace(-1, 1, n)`,
+axes in 'ij' order (grid axis 0 is x); keypoints are `(..., K, 4)` with xyz in the normalised cube
+and the intensity alpha last. Everything here is pure and works under `jit`, `vmap` and `grad`.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ def coord_grid(n: int) -> Array:
 
 
 def add_coord_channels(x: Array) -> Array:
-    """CoordConv input: appends the three coordinate channels of the grid (DESIGN §6).
+    """CoordConv input: appends the three coordinate channels of the grid (docs/architecture.md §6).
 
     Args:
         x: (..., n, n, n, C) channels-last feature volume.
@@ -51,7 +52,8 @@ def add_coord_channels(x: Array) -> Array:
 
 
 def heatmap_to_keypoints(heatmaps: Array, temperature: float = 1.0) -> Array:
-    """Keypoints from non-negative heatmaps (paper Eq. 6 -> x = (mu, alpha), DESIGN §6).
+    """Keypoints from non-negative heatmaps (paper Eq. 6 -> x = (mu, alpha), docs/architecture.md
+    §6).
 
     alpha_k = mean of heatmap k over the grid, divided by (max over K of those means + 1e-6).
     mu_k along axis d = expectation of `linspace(-1, 1, g)` under the marginal of heatmap k on that
@@ -114,7 +116,8 @@ def heatmap_far_mass(heatmaps: Array, radius: float = 1.5) -> Array:
 
 
 def gaussian_maps(keypoints: Array, sigma: float, n: int) -> Array:
-    """Renders keypoints as isotropic gaussian maps on an n^3 grid (paper Eq. 7, DESIGN §6).
+    """Renders keypoints as isotropic gaussian maps on an n^3 grid (paper Eq. 7,
+    docs/architecture.md §6).
 
     g_k(x) = alpha_k * prod_d exp(-(x_d - mu_kd)^2 / (2 (sigma / n)^2)), i.e. the width is `sigma`
     cells of the g-cell grid expressed as sigma / n in normalised units (the released
@@ -166,7 +169,8 @@ def affinity_from_params(params: Array) -> Array:
 
 
 def influence(affinity: Array) -> Array:
-    """The influence a_kk' = max_n A_n,kk' of the N decomposed affinities (DESIGN §5, §7 step 1).
+    """The influence a_kk' = max_n A_n,kk' of the N decomposed affinities (docs/architecture.md §5,
+    §7 step 1).
 
     The one definition behind the graph losses (Eqs. 13-16) and the skeleton extraction
     (Algorithm 1). It takes the array's own `max`, so a JAX array stays a JAX array (jit, grad)

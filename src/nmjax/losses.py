@@ -1,4 +1,4 @@
-"""Every loss term of Neural Marionette (paper Eqs. 3, 4, 8-17, 23; DESIGN §5).
+"""Every loss term of Neural Marionette (paper Eqs. 3, 4, 8-17, 23; docs/architecture.md §5).
 
 Pure functions of arrays; each works under `jax.jit`, `jax.vmap` and `jax.grad`. Shapes use B
 batch, T frames, G voxel grid, g heatmap grid, K keypoints, N decomposed affinity matrices.
@@ -256,9 +256,9 @@ def trajectory_cost(
     vel_t = mu_t+1 - mu_t, acc_t = vel_t+1 - vel_t (finite differences over T);
     C = (1 - cos(vel_k, vel_k')) / 2 + (1 - cos(acc_k, acc_k')) / 2, in [0, 2],
     each cosine averaged over its own frames (and every leading axis). That is the released
-    code's cost (DESIGN §5), on which the per-dataset w_traj of Tables 4-8 were tuned; the
-    default. `printed_scale=True` gives the printed Eq. 14's [0, 1] scale (the same cost halved).
-    The printed Eq. 14 divides each inner product by its own absolute value (a sign); the
+    code's cost (docs/architecture.md §5), on which the per-dataset w_traj of Tables 4-8 were tuned;
+    the default. `printed_scale=True` gives the printed Eq. 14's [0, 1] scale (the same cost
+    halved). The printed Eq. 14 divides each inner product by its own absolute value (a sign); the
     released code uses the cosine similarity, computed here as PyTorch computes it: both norms
     clamped to 1e-6 in value, the gradient the unclamped norm's (a zero velocity gives cosine
     0). With `intensity_weighted`, row k is weighted by alpha_k averaged onto the velocity frames

@@ -23,8 +23,8 @@ from nmjax.parents import parents_from_external
 NO_PATH = 1e4  # Algorithm 1: hop distance written for "no path" between two keypoints
 PRUNE_THRESHOLD = 0.2  # keypoints with mean intensity alpha below this are pruned (paper figures)
 DEFAULT_NEIGHBORS = 2  # N of Algorithm 1: the number of neighbours each keypoint links to
-# "algorithm1": the paper's Algorithm 1 (DESIGN §7), the default; "filtered": weak links dropped
-# and a hop-level ranking (see `extract_skeleton`).
+# "algorithm1": the paper's Algorithm 1 (docs/architecture.md §7), the default; "filtered": weak
+# links dropped and a hop-level ranking (see `extract_skeleton`).
 METHODS = ("algorithm1", "filtered")
 
 
@@ -155,7 +155,8 @@ def load_skeleton(path: str | os.PathLike) -> Skeleton:
 
 
 def influence(affinity: Any) -> np.ndarray:
-    """Influence max_n A_n of the N learned affinities (DESIGN section 7), checked, in float64.
+    """Influence max_n A_n of the N learned affinities (docs/architecture.md §7), checked, in
+    float64.
 
     The max is `keypoints.influence`, the graph losses' own; here the input is validated and
     the diagonal (a keypoint's affinity to itself) zeroed.
@@ -186,7 +187,7 @@ def binarize_affinity(a: np.ndarray, n_neighbors: int, row_mean_filter: bool = F
 
     Keypoint i links to its `n_neighbors` strongest keypoints (ties by index; never itself), and
     the links are symmetrised (an edge if either end chose it), so a keypoint can have more than
-    N neighbours (a palm with five fingers). That is Algorithm 1 (DESIGN §7, step 2).
+    N neighbours (a palm with five fingers). That is Algorithm 1 (docs/architecture.md §7, step 2).
 
     With `row_mean_filter` (the "filtered" method) a link is kept only when its affinity exceeds
     the mean of row i's off-diagonal entries (for softmaxed rows the uniform level 1/(K-1)), so a
@@ -268,16 +269,17 @@ def connect_components(bin_: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         root = _argmin_sum(dist, everyone)
 
 
-# --- Algorithm 1 as published (DESIGN §7 steps 5-8), the default ------------------------------
+# --- Algorithm 1 as published (docs/architecture.md §7 steps 5-8), the default --------------------
 
-TIE_BREAK = 1e-5  # DESIGN §7 step 5: extra length of an edge that breaks a tie of summed distances
+# docs/architecture.md §7 step 5: extra length of an edge that breaks a tie of summed distances
+TIE_BREAK = 1e-5
 RANK_TOL = 1e-9  # distances that differ by less are equal ranks (far below TIE_BREAK)
 
 
 def tie_break_lengths(a: np.ndarray, bin_: np.ndarray, hops: np.ndarray) -> np.ndarray:
-    """RefineGraph's edge lengths (DESIGN §7 step 5): every A^bin edge has length 1; for each pair
-    k < k' whose summed hop distances are equal and each node n adjacent to both, the edge
-    (n, l) grows by 1e-5, l being the one of k, k' that n has the smaller influence on
+    """RefineGraph's edge lengths (docs/architecture.md §7 step 5): every A^bin edge has length 1;
+    for each pair k < k' whose summed hop distances are equal and each node n adjacent to both, the
+    edge (n, l) grows by 1e-5, l being the one of k, k' that n has the smaller influence on
     (l = k' if I[n, k] > I[n, k'] else k), so n's preferred keypoint ends up nearer.
 
     Args:
@@ -299,7 +301,7 @@ def tie_break_lengths(a: np.ndarray, bin_: np.ndarray, hops: np.ndarray) -> np.n
 
 
 def algorithm1_parents(a: np.ndarray, bin_: np.ndarray, rank: np.ndarray, root: int) -> np.ndarray:
-    """Lines 14-33 of Algorithm 1 as DESIGN §7 step 7 spells them.
+    """Lines 14-33 of Algorithm 1 as docs/architecture.md §7 step 7 spells them.
 
     For each k != root, scanning k's A^bin neighbours n in index order with the current choice p
     and its rank gap g = rank[p] - rank[k] (start: none, g = -1e3):
@@ -310,8 +312,9 @@ def algorithm1_parents(a: np.ndarray, bin_: np.ndarray, rank: np.ndarray, root: 
     No choice: the parent is the root. Ranks closer than `RANK_TOL` are equal.
 
     Same-rank choices can in principle close a cycle (k takes n, n takes q, q takes k, each by
-    another m); DESIGN requires a tree, so each such cycle is broken at its lowest index, which
-    gets its best strictly-nearer neighbour instead (the rule without the same-rank case).
+    another m); the skeleton must be a tree (docs/architecture.md §7), so each such cycle is broken
+    at its lowest index, which gets its best strictly-nearer neighbour instead (the rule without the
+    same-rank case).
 
     Args:
       a: (K, K) influence I; bin_: (K, K) connected A^bin; rank: (K,) weighted distance from
@@ -381,8 +384,8 @@ def _find_cycle(parents: np.ndarray, root: int) -> list[int] | None:
 
 
 def tree_order(skeleton: Skeleton, lengths: np.ndarray) -> np.ndarray:
-    """DESIGN §7 step 8: nodes sorted (stably) by their distance from the root along the tree,
-    each tree edge as long as in `lengths` (1 for an edge that A^bin lacks)."""
+    """docs/architecture.md §7 step 8: nodes sorted (stably) by their distance from the root along
+    the tree, each tree edge as long as in `lengths` (1 for an edge that A^bin lacks)."""
     parents = skeleton.parents
     dist = np.zeros(skeleton.num_keypoints)
     for k in skeleton.order[1:]:  # parents first
@@ -463,12 +466,12 @@ def extract_skeleton(
 ) -> Skeleton:
     """The kinematic tree over all K keypoints from the learned affinity.
 
-    method="algorithm1" (default): Algorithm 1 as published, step by step as DESIGN §7: influence
-    max_n A_n; `binarize_affinity` (each node's top-N links, no threshold, symmetrised);
-    `connect_components` (hop distances by Dijkstra, root = argmin of summed distances, root to
-    pseudo-root edges until connected); `tie_break_lengths` and weighted Dijkstra (RefineGraph);
-    root = argmin of the summed weighted distances, rank = weighted distance from the root;
-    `algorithm1_parents` (the neighbour nearest in rank among those nearer the root, same-rank
+    method="algorithm1" (default): Algorithm 1 as published, step by step as docs/architecture.md
+    §7: influence max_n A_n; `binarize_affinity` (each node's top-N links, no threshold,
+    symmetrised); `connect_components` (hop distances by Dijkstra, root = argmin of summed
+    distances, root to pseudo-root edges until connected); `tie_break_lengths` and weighted Dijkstra
+    (RefineGraph); root = argmin of the summed weighted distances, rank = weighted distance from the
+    root; `algorithm1_parents` (the neighbour nearest in rank among those nearer the root, same-rank
     rule); `tree_order` (order by distance along the tree).
 
     method="filtered" (a variant, not the paper's): links at or below the row mean are dropped

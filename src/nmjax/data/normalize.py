@@ -1,5 +1,5 @@
-"""The episodic normalisation box (DESIGN section 4, Sec. B.1): the one definition every caller
-uses (training crops, evaluation crops, whole sequences, task clips, a retarget target mesh).
+"""The episodic normalisation box (docs/architecture.md §4, Sec. B.1): the one definition every
+caller uses (training crops, evaluation crops, whole sequences, task clips, a retarget target mesh).
 
 A cropped sequence is mapped into the cube [-1, 1)^3 with one bounding box shared by all of its
 frames, p' = 2 (p - bmin) / (longest side + 1e-5) - 1: the minimum corner goes to -1 on every

@@ -2,7 +2,7 @@
 
 One element is one crop (paper Sec. B.1): a sequence drawn from a per-epoch shuffle of the split,
 a random start, `cfg.frames` frames every `cfg.sample_rate` original frames (padded with the last
-frame), normalised with one bounding box over the crop (DESIGN section 4) and voxelised at
+frame), normalised with one bounding box over the crop (docs/architecture.md §4) and voxelised at
 `cfg.grid`. The grain graph is
 
     MapDataset.range(num_sequences).seed(seed).shuffle().repeat()   # infinite, reshuffled per epoch

@@ -1,4 +1,4 @@
-"""Voxelisation of normalised point clouds (DESIGN section 4, Sec. B.1).
+"""Voxelisation of normalised point clouds (docs/architecture.md §4, Sec. B.1).
 
 Points already in [-1, 1)^3 (`nmjax.data.normalize`) are discretised on a G^3 grid with
 cell = floor((p' + 1) / (2/G + 1e-5)), every hit cell having occupancy 1. The way back, from a

@@ -8,7 +8,8 @@
   ("sc": in each frame keypoints with alpha < 0.2 are no candidates) and with the fixed node set
   of the pruned skeleton ("sc_fixed_nodes").
 - Bone-length variation of the pruned skeleton over the same crops (std / mean length per bone).
-- The skeleton against the ground truth, on data with joints (DESIGN §9; the kept nodes and
+- The skeleton against the ground truth, on data with joints (docs/architecture.md §9; the kept
+nodes and
   pruned tree stored in the run's skeleton.json, the true tree from the dataset's meta.json):
   joint distance (mean and 95% CI over test sequences), joint coverage at radius 0.05 and 0.10,
   edge precision (and within two hops), bone recall and distinct nodes (`metrics`).

@@ -1,5 +1,5 @@
-"""Evaluation metrics (DESIGN §9), pure math: arrays in, arrays or floats out; nothing here reads
-files or imports another part of nmjax.
+"""Evaluation metrics (docs/architecture.md §9), pure math: arrays in, arrays or floats out; nothing
+here reads files or imports another part of nmjax.
 
 - `sc`: SC-score (Eq. 21, Table 1).
 - `skeleton_measures`: bone-length variation and the skeleton against the ground truth (joint

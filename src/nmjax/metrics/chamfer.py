@@ -21,7 +21,7 @@ TRACKING_SCALE = 1e4  # Table 2 reports the Chamfer distance x 1e4
 
 def voxel_points(voxels: np.ndarray, threshold: float = 0.5) -> np.ndarray:
     """Coordinates of the occupied cells of one grid on the `linspace(-1, 1, G)` grid: the point
-    set V_t that the Chamfer metrics compare (DESIGN section 4's coordinate grid).
+    set V_t that the Chamfer metrics compare (docs/architecture.md §4's coordinate grid).
 
     Args:
       voxels: (G, G, G) occupancy (binary or probabilities).

@@ -1,5 +1,5 @@
 """SC-score, Eq. 21 (paper Table 1): how consistently every ground-truth joint keeps the same
-nearest keypoint (DESIGN §9).
+nearest keypoint (docs/architecture.md §9).
 
 `nearest_keypoint_counts` is the pure, jit-able kernel; `SemanticConsistency` accumulates its
 counts over many batches.
@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-# How the candidates for "nearest keypoint" are chosen (DESIGN §9):
+# How the candidates for "nearest keypoint" are chosen (docs/architecture.md §9):
 # "per_frame": the published SC-score: in every frame, the keypoints whose alpha in that frame is
 #   >= the threshold. The default; what `nmjax evaluate` reports as "sc".
 # "fixed": one node set over all the frames, the keypoints whose mean alpha is >= the threshold
@@ -24,7 +24,8 @@ def skeleton_nodes(keypoints: Array, min_intensity: float = 0.2) -> Array:
     """The keypoints that are nodes of the pruned skeleton: mean intensity >= `min_intensity`.
 
     The intensity is averaged over all the given frames, so the node set is one fixed set, as
-    the pruned skeleton of DESIGN §7 (alpha < 0.2 removed); the brightest keypoint always stays.
+    the pruned skeleton of docs/architecture.md §7 (alpha < 0.2 removed); the brightest keypoint
+    always stays.
 
     Args:
         keypoints: (..., K, 4) detected keypoints.
@@ -56,7 +57,7 @@ def nearest_keypoint_counts(
     Args:
         keypoints: (..., K, 4) detected keypoints, one set per frame.
         gt_joints: (..., J, 3) ground-truth joints of the same frames (same normalisation).
-        min_intensity: the alpha threshold (DESIGN §9: 0.2).
+        min_intensity: the alpha threshold (docs/architecture.md §9: 0.2).
         nodes: "per_frame" or "fixed" (`SC_NODES`).
 
     Returns:
@@ -101,7 +102,7 @@ def semantic_consistency(
     Args:
         keypoints: (F, K, 4) (any leading axes) detected keypoints.
         gt_joints: (F, J, 3) ground-truth joints in the same normalised frame.
-        min_intensity: the alpha threshold (DESIGN §9: 0.2).
+        min_intensity: the alpha threshold (docs/architecture.md §9: 0.2).
         nodes: "per_frame" or "fixed".
 
     Returns:

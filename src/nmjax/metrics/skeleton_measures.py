@@ -1,6 +1,6 @@
-"""Measures of a discovered skeleton (DESIGN §9): the bone-length variation of its bones over
-time, and, on data with ground-truth joints, the skeleton against the true tree (joint distance,
-joint coverage, edge precision, bone recall, distinct nodes).
+"""Measures of a discovered skeleton (docs/architecture.md §9): the bone-length variation of its
+bones over time, and, on data with ground-truth joints, the skeleton against the true tree (joint
+distance, joint coverage, edge precision, bone recall, distinct nodes).
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ def bone_length_variation(
     eps: float = 1e-8,
     kept: Array | None = None,
 ) -> Array:
-    """Bone-length variation E_b (DESIGN §9): for every bone between kept nodes, the standard
-    deviation over time of its length divided by its mean length, averaged over the bones and
-    the sequences. 0 for a rigid skeleton whose bones keep their length.
+    """Bone-length variation E_b (docs/architecture.md §9): for every bone between kept nodes, the
+    standard deviation over time of its length divided by its mean length, averaged over the bones
+    and the sequences. 0 for a rigid skeleton whose bones keep their length.
 
     The kept nodes are the keypoints whose mean alpha over all the given frames is >=
     `alpha_min`, unless `kept` gives the node set (e.g. a run's pruned skeleton, whatever
@@ -80,10 +80,10 @@ def bone_length_variation(
 
 # SC (Eq. 21) asks only whether each joint keeps the same nearest keypoint: it rewards keypoints
 # bunched in one place and cannot see a tree that links the wrong parts. These measures, for data
-# with ground-truth joints (DESIGN §9), ask where the kept nodes are and whether the skeleton's
-# tree is the true one. Nodes and joints are matched by Euclidean distance in the normalised cube
-# [-1, 1]^3. All are array math, jit- and vmap-able: the trees enter as adjacency matrices of
-# their parent arrays (`tree_within`), so no graph library is needed.
+# with ground-truth joints (docs/architecture.md §9), ask where the kept nodes are and whether the
+# skeleton's tree is the true one. Nodes and joints are matched by Euclidean distance in the
+# normalised cube [-1, 1]^3. All are array math, jit- and vmap-able: the trees enter as adjacency
+# matrices of their parent arrays (`tree_within`), so no graph library is needed.
 
 COVERAGE_RADII = (0.05, 0.10)  # joint_coverage radii reported by `nmjax evaluate`
 TWO_HOPS = 2  # the looser edge precision counts joints within two hops of each other

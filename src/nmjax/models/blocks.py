@@ -1,4 +1,4 @@
-"""The 3D layers of the keypoint detector (paper Fig. 9, DESIGN section 6), channels-last
+"""The 3D layers of the keypoint detector (paper Fig. 9, docs/architecture.md §6), channels-last
 (..., X, Y, Z, C), as the authors released them.
 
 Every layer takes a batch (B, X, Y, Z, C); callers fold time into the batch axis. A layer says
@@ -38,7 +38,8 @@ DEFAULT_EVALUATION = Evaluation()
 
 
 def num_groups(channels: int) -> int:
-    """GroupNorm groups: channels / 16 (DESIGN section 6), at least 1 and dividing `channels`."""
+    """GroupNorm groups: channels / 16 (docs/architecture.md §6), at least 1 and dividing
+    `channels`."""
     return math.gcd(channels, max(1, channels // 16))
 
 
@@ -87,9 +88,9 @@ class Conv3D(nnx.Module):
     halving each axis ("pool"). transpose=True, kernel=2, stride=2: transposed convolution
     doubling each axis. upsample=True: the input is first upsampled 2x by trilinear
     interpolation (`conv_kernels.upsample_trilinear`), then convolved (f_dec). coords=True:
-    CoordConv, the 3 coordinate channels of the grid (DESIGN section 4) appended to the input's
-    channels, so the input has in - 3 of them (the stem). Kernel initialised N(0, init_std^2)
-    (`INIT_STD`, the released network's), bias 0. `conv_kernels.conv3d` evaluates the
+    CoordConv, the 3 coordinate channels of the grid (docs/architecture.md §4) appended to the
+    input's channels, so the input has in - 3 of them (the stem). Kernel initialised N(0,
+    init_std^2) (`INIT_STD`, the released network's), bias 0. `conv_kernels.conv3d` evaluates the
     convolution in the form and compute dtype of `evaluation`; the result is float32.
     """
 

@@ -1,4 +1,4 @@
-"""Keypoint detector of the skeleton module (paper Sec. 4, Fig. 8-9; DESIGN section 6).
+"""Keypoint detector of the skeleton module (paper Sec. 4, Fig. 8-9; docs/architecture.md §6).
 
 voxels v_{1:T} -> per-frame features c_t (f_feat) -> heatmaps (f_heat, fused with the
 spatio-temporal heatmaps of the temporal mean, Eq. 6) -> keypoints x_t = (mu, alpha) ->

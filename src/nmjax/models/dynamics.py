@@ -1,4 +1,4 @@
-"""Dynamics module (paper Sec. 3-4, appendix Fig. 10-11; DESIGN section 8).
+"""Dynamics module (paper Sec. 3-4, appendix Fig. 10-11; docs/architecture.md §8).
 
 A variational RNN over keypoint trajectories x_{1:T} (B,T,K,4). At every step the posterior
 q(z_t | h_t, x_t) and the prior p(z_t | h_t) are diagonal Gaussians; a decoder turns (h_t, z_t)
@@ -14,10 +14,10 @@ Two decoders share the cell:
 - "vrnn" (baseline of Chung et al. / Minderer et al.): the decoder regresses the 4K keypoint values
   directly.
 
-Every choice the paper leaves open is the authors' release's (compared weight for weight, DESIGN
-section 8): LeakyReLU (slope 0.01) in every MLP, PyTorch's GRU cell (`GRUCell`, the hidden bias
-b_hn inside the reset product), bone lengths as torch's median (the lower middle value), a
-learned initial hidden state drawn N(0, 1), and PyTorch's default initialisation of every Linear
+Every choice the paper leaves open is the authors' release's (compared weight for weight,
+docs/architecture.md §8): LeakyReLU (slope 0.01) in every MLP, PyTorch's GRU cell (`GRUCell`, the
+hidden bias b_hn inside the reset product), bone lengths as torch's median (the lower middle value),
+a learned initial hidden state drawn N(0, 1), and PyTorch's default initialisation of every Linear
 and of the GRU (`torch_uniform`). The phase-2 loss reduces the KL as the release does
 (`nmjax.train.dyn.loss_fn`).
 

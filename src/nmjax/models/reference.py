@@ -1,11 +1,11 @@
 """The plain formulations of what the detector computes in an optimised form: the reference.
 
-Each function takes a real module of `nmjax.models` (its parameters) and computes what DESIGN §6
-writes down, the straightforward way, with none of the model's shortcuts: every convolution is
-XLA's own 3D convolution (`conv_kernels.conv3d_native`) on the full grid it is printed on. The
-model never calls them; they are what its fast forms are held to. tests/test_plain_forms.py
-checks the model against them in value and gradient; experiments/bench_optimisations.py times
-the model against them.
+Each function takes a real module of `nmjax.models` (its parameters) and computes what
+docs/architecture.md §6 writes down, the straightforward way, with none of the model's shortcuts:
+every convolution is XLA's own 3D convolution (`conv_kernels.conv3d_native`) on the full grid it is
+printed on. The model never calls them; they are what its fast forms are held to.
+tests/test_plain_forms.py checks the model against them in value and gradient;
+experiments/bench_optimisations.py times the model against them.
 """
 
 from __future__ import annotations

@@ -118,7 +118,8 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         batch_size=int(_option(options, "nbatch")),
         epochs=int(_option(options, "nepoch")),
         learning_rate=learning_rate,
-        clip_norm=0.0,  # its clip_grad_norm_ runs on gradients already applied (DESIGN 6b)
+        # its clip_grad_norm_ runs on gradients already applied (docs/architecture.md §6b)
+        clip_norm=0.0,
         kl_weight=float(_option(options, "kl_kypt_weight")),
         seed=seed,
         run=str(run / "dyn"),

@@ -1,4 +1,4 @@
-"""What the learned model is for (paper Sec. 5, appendix A.4 and D.4; DESIGN section 9).
+"""What the learned model is for (paper Sec. 5, appendix A.4 and D.4; docs/architecture.md §9).
 
 - `generate`: motion generation, `generate_motion`; `nmjax generate` (`run_generate`).
 - `interpolate`: motion interpolation between keyframes, `interpolate_motion`, and the baselines

@@ -67,9 +67,9 @@ def point_file_keypoints(
     detector: trained.Detector, path: str | os.PathLike, frames: int | None, sample_rate: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """A point-sequence file's motion as the release's demos take it: `frames` frames from the
-    first, every `sample_rate`-th, normalised with one bounding box over them (DESIGN section
-    4, the release's episodic normalisation), voxelised, and run through the detector as one
-    crop (its spatio-temporal branch sees their mean).
+    first, every `sample_rate`-th, normalised with one bounding box over them (docs/architecture.md
+    §4, the release's episodic normalisation), voxelised, and run through the detector as one crop
+    (its spatio-temporal branch sees their mean).
 
     Args:
       detector: the phase-1 detector.

@@ -235,7 +235,7 @@ def run_retarget(
     `source_rate`-th, default the run's sample rate), detected as one crop as the release's
     retargeting demo does (`point_file_keypoints`; the demo takes 40 frames at rate 1).
 
-    1. Target skeleton: `points` surface samples of the mesh, normalised (DESIGN section 4),
+    1. Target skeleton: `points` surface samples of the mesh, normalised (docs/architecture.md §4),
        voxelised, keypoints by the phase-1 detector; topology = the run's skeleton.
     2. Source motion: local rotations and root trajectory inferred by the dynamics posterior
        (best of S) from the source keypoints.

@@ -162,8 +162,8 @@ def clip_voxels(
 
     Frames start, start + r, ... (r = `data.sample_rate`, padded with the last frame past the
     end), mapped into [-1, 1)^3 with the box of the clip's first `box_frames` frames (default: all
-    of them, as a training crop; DESIGN section 4) and voxelised on `data.grid`. A smaller box
-    keeps a longer clip in the frame of its first crop; points that leave the box land in the
+    of them, as a training crop; docs/architecture.md §4) and voxelised on `data.grid`. A smaller
+    box keeps a longer clip in the frame of its first crop; points that leave the box land in the
     border cells.
 
     Args:

@@ -232,7 +232,7 @@ def validate(
         all_kp.append(np.asarray(keypoints))
     scalars = {f"val/{k}": v / len(batches) for k, v in sums.items()}
     if sc.frames > 0:
-        scalars["val/sc_score"] = sc.result()  # the published definition (DESIGN §9)
+        scalars["val/sc_score"] = sc.result()  # the published definition (docs/architecture.md §9)
         scalars["val/sc_fixed_nodes"] = sc.result("fixed")
     return scalars, np.stack(all_kp)
 

@@ -6,8 +6,8 @@ Four kinds of input, told apart by what they hold:
   voxels), the detector's keypoints of every frame (colour by index, size by intensity alpha,
   the nodes the skeleton prunes in grey), the bones of the pruned skeleton between kept nodes
   with the root marked, the ground-truth joints and tree where the dataset has them, and the
-  learned affinity (the influence max_n A_n of DESIGN section 7) as the opacity of a line between
-  every pair of keypoints;
+  learned affinity (the influence max_n A_n of docs/architecture.md §7) as the opacity of a line
+  between every pair of keypoints;
 - a phase-2 run (`nmjax train-dyn`, model "nm"): the sequence's conditioning frames and S
   generated continuations side by side, and below them the interpolation of a gap by the model
   beside the Lerp and Slerp baselines (and the positional VRNN when a run of it lies beside);

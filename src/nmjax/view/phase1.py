@@ -2,8 +2,8 @@
 occupied voxels), the detector's keypoints of every frame (colour by index, size by intensity
 alpha, the nodes the skeleton prunes in grey), the bones of the pruned skeleton between kept
 nodes with the root marked, the ground-truth joints and tree where the dataset has them, and the
-learned affinity (the influence max_n A_n of DESIGN section 7) as the opacity of a line between
-every pair of keypoints."""
+learned affinity (the influence max_n A_n of docs/architecture.md §7) as the opacity of a line
+between every pair of keypoints."""
 
 from __future__ import annotations
 

@@ -18,18 +18,18 @@ good (`loop.keep_every`), so that each can be scored later. Recipes:
 A run folder that holds checkpoints of the same configuration is resumed from its latest one, so
 a run that a session's end interrupts goes on where it stopped.
 
-`score` scores every kept checkpoint of every run under `--runs` that has no row yet, as the
-trained run of that many steps would be scored: the checkpoint's detector is written as a
-phase-1 run folder of its own under `runs/budget-at/<run>/<step>` (its affinity and keypoint
-statistics on the validation batches, its skeleton by Algorithm 1: `snapshot`), then evaluated
-on the test split (`nmjax.evaluate.evaluate_phase1`: SC in both definitions, tracking CD, joint
-distance, distinct / kept nodes, edge precision, bone recall, ...) with one frame for the
-pictures. Each row is written to `experiments/results/phase1_budget.json` as soon as it is
-scored (commit it: run folders do not survive a new machine), and kept by later calls while it
-is what they would compute (`nmjax.rows`). The minutes of a row are its steps at the step time
-measured once on the quiet machine, compilation included (`STEP_TIME`, from
-`results/phase1_budget_bench/`, `nmjax bench --phase skel --preset cpu`), not the wall time of
-the run, which shared its cores with other work.
+`score [--watch MINUTES]` scores every kept checkpoint of every run under `--runs` that has no row
+yet (with --watch, again every MINUTES as the runs go on), as the trained run of that many steps
+would be scored: the checkpoint's detector is written as a phase-1 run folder of its own under
+`runs/budget-at/<run>/<step>` (its affinity and keypoint statistics on the validation batches, its
+skeleton by Algorithm 1: `snapshot`), then evaluated on the test split
+(`nmjax.evaluate.evaluate_phase1`: SC in both definitions, tracking CD, joint distance, distinct /
+kept nodes, edge precision, bone recall, ...) with one frame for the pictures. Each row is written
+to `experiments/results/phase1_budget.json` as soon as it is scored (commit it: run folders do not
+survive a new machine), and kept by later calls while it is what they would compute (`nmjax.rows`).
+The minutes of a row are its steps at the step time measured once on the quiet machine, compilation
+included (`STEP_TIME`, from `results/phase1_budget_bench/`, `nmjax bench --phase skel --preset
+cpu`), not the wall time of the run, which shared its cores with other work.
 
 `render` writes `phase1_budget.md` (a table per run) and `phase1_budget.png` (each measure
 against minutes, a line per recipe, a panel column per body) and
@@ -97,6 +97,9 @@ MEASURES = (
     ("edge_precision", "edge precision", True),
     ("bone_recall", "bone recall", True),
     ("tracking_cd", "tracking CD x1e4", False),
+    ("tree_edit_distance", "tree edit distance", False),
+    ("cd_j2j", "CD-J2J x1e-2", False),
+    ("rig_fit_cd", "rig fit error x1e4", False),
 )
 STORE = rows.RowStore(
     ROWS_FILE, METRICS, SINCE, key=("body", "recipe", "seed", "step"), config_class=SkelTrainConfig
@@ -223,11 +226,9 @@ def scored_steps(run: Path) -> list[int]:
     return [s for s in run_folder.checkpoint_steps(run) if s > 0 and s % KEEP_EVERY == 0]
 
 
-def score(runs_root: Path) -> int:
+def score_round(runs_root: Path, stamp) -> int:
     """Scores every kept checkpoint of the plan's runs under `runs_root` that has no row that
-    `STORE` keeps; returns how many rows were made."""
-    rows.refuse_dirty("phase1_budget.py score", allow_dirty=False)
-    stamp = provenance.stamp(METRICS)
+    `STORE` keeps, under `stamp`; returns how many rows were made."""
     made = 0
     for body, recipe, seed in PLAN:
         run = run_dir(body, recipe, seed, runs_root)
@@ -245,10 +246,37 @@ def score(runs_root: Path) -> int:
             print(
                 f"{run.name} step {step}: SC {s.get('sc', float('nan')):.3f}, joint d "
                 f"{s.get('joint_distance', float('nan')):.3f}, {s.get('distinct_nodes')}/"
-                f"{s.get('skeleton_kept_nodes')} distinct, CD {s['tracking_cd']:.1f} "
+                f"{s.get('skeleton_kept_nodes')} distinct, fit "
+                f"{s.get('rig_fit_cd', float('nan')):.1f}, CD {s['tracking_cd']:.1f} "
                 f"({row['score_seconds']:.0f} s)",
                 flush=True,
             )
+    return made
+
+
+def plan_complete(runs_root: Path) -> bool:
+    """Whether every run of the plan has a row for its last step."""
+    stored = STORE.read()
+    return all(
+        STORE.find(stored, body=b, recipe=r, seed=s, step=STEPS) is not None for b, r, s in PLAN
+    )
+
+
+def score(runs_root: Path, watch_minutes: float = 0.0) -> int:
+    """Scores the kept checkpoints without a row (`score_round`) and renders; with
+    `watch_minutes` > 0, again every that many minutes, as the runs write new checkpoints,
+    until every run of the plan is scored to its last step. The checkout is checked clean and
+    stamped once, at the start, so the rows this call writes do not make it refuse itself."""
+    rows.refuse_dirty("phase1_budget.py score", allow_dirty=False)
+    stamp = provenance.stamp(METRICS)
+    made = score_round(runs_root, stamp)
+    render()
+    while watch_minutes > 0 and not plan_complete(runs_root):
+        time.sleep(60 * watch_minutes)
+        new = score_round(runs_root, stamp)
+        if new:
+            render()
+        made += new
     return made
 
 
@@ -288,8 +316,8 @@ def markdown(stored: list[dict[str, Any]]) -> str:
             f"## {body}, {recipe} ({RECIPES[recipe]}), seed {seed}",
             "",
             "| step | minutes | SC | SC fixed | joint d | distinct / kept | edge prec. | "
-            "bone recall | tracking CD | commit |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "bone recall | TED | CD-J2J | fit error | tracking CD | commit |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in series:
             s = r["scores"]
@@ -298,7 +326,9 @@ def markdown(stored: list[dict[str, Any]]) -> str:
                 f"{_cell(s.get('sc_fixed_nodes'))} | {_cell(s.get('joint_distance'))} | "
                 f"{s.get('distinct_nodes', '-')} / {s.get('skeleton_kept_nodes', '-')} | "
                 f"{_cell(s.get('edge_precision'))} | {_cell(s.get('bone_recall'))} | "
-                f"{s['tracking_cd']:.1f} | {provenance.describe_commit(r['provenance'])} |"
+                f"{_cell(s.get('tree_edit_distance'))} | {_cell(s.get('cd_j2j'), 2)} | "
+                f"{_cell(s.get('rig_fit_cd'), 1)} | {s['tracking_cd']:.1f} | "
+                f"{provenance.describe_commit(r['provenance'])} |"
             )
         lines.append("")
     lines += ["## Definitions", ""]
@@ -384,13 +414,19 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--steps", type=int, default=STEPS)
     p = sub.add_parser("score", help="score every kept checkpoint without a row, then render")
     p.add_argument("--runs", type=Path, default=RUNS, help="the folder of the long runs")
+    p.add_argument(
+        "--watch",
+        type=float,
+        default=0.0,
+        metavar="MINUTES",
+        help="score new checkpoints every MINUTES until every run of the plan is scored",
+    )
     sub.add_parser("render", help="rewrite the table and figures from the rows")
     args = parser.parse_args(argv)
     if args.command == "train":
         print(train(args.data, args.recipe, args.seed, args.steps))
     elif args.command == "score":
-        print(f"{score(args.runs)} rows made")
-        render()
+        print(f"{score(args.runs, args.watch)} rows made")
     else:
         render()
 

@@ -31,6 +31,10 @@ The minutes of a row are its steps at the step time measured once on the quiet m
 included (`STEP_TIME`, from `results/phase1_budget_bench/`, `nmjax bench --phase skel --preset
 cpu`), not the wall time of the run, which shared its cores with other work.
 
+`park` writes the latest checkpoint of every unfinished run to
+`results/phase1_budget_state/<run>.tar.gz` (commit it at a session's end): `train` on a machine
+without the run folder resumes from there.
+
 `render` writes `phase1_budget.md` (a table per run) and `phase1_budget.png` (each measure
 against minutes, a line per recipe, a panel column per body) and
 `phase1_budget_skeletons.png` (the skeletons at 2k / 5k / 10k / 20k steps).
@@ -41,6 +45,10 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
+import shutil
+import tarfile
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -63,6 +71,9 @@ ROWS_FILE = RESULTS / "phase1_budget.json"
 BENCH = RESULTS / "phase1_budget_bench"
 RUNS = Path("runs") / "budget"
 SNAPSHOTS = Path("runs") / "budget-at"
+# The latest training state of each unfinished run, committed at a session's end (`park`), so
+# that the next session on a new machine resumes the run instead of starting it again.
+PARKED = RESULTS / "phase1_budget_state"
 STEPS = 20_000
 KEEP_EVERY = 1_000
 PICTURE_STEPS = (2_000, 5_000, 10_000, 20_000)
@@ -138,10 +149,70 @@ def _same_run(run: Path, cfg: SkelTrainConfig) -> bool:
     return rows.comparable(saved, SkelTrainConfig) == rows.comparable(cfg)
 
 
+def parked_state(run: Path) -> Path:
+    return PARKED / f"{run.name}.tar.gz"
+
+
+def park(runs_root: Path = RUNS) -> list[Path]:
+    """Writes the latest checkpoint of every unfinished run of the plan under `runs_root` (with
+    its config.json and metrics.jsonl) to `PARKED/<run>.tar.gz`, atomically, and removes the
+    parked state of every finished one; returns the files written."""
+    written = []
+    for body, recipe, seed in PLAN:
+        run = run_dir(body, recipe, seed, runs_root)
+        steps = run_folder.checkpoint_steps(run)
+        if not steps or not _same_run(run, run_config(body, recipe, seed)):
+            continue
+        target = parked_state(run)
+        if steps[-1] >= STEPS:
+            target.unlink(missing_ok=True)
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=target.parent, suffix=".tmp")
+        os.close(fd)
+        try:
+            with tarfile.open(tmp, "w:gz") as tar:
+                for name in (run_folder.CONFIG_FILE, run_folder.METRICS_FILE):
+                    tar.add(run / name, arcname=name)
+                latest = run_folder.checkpoint_dir(run) / str(steps[-1])
+                tar.add(latest, arcname=f"{run_folder.CHECKPOINTS}/{steps[-1]}")
+            os.replace(tmp, target)
+        finally:
+            Path(tmp).unlink(missing_ok=True)
+        print(f"parked {run.name} at step {steps[-1]}: {target} ({target.stat().st_size >> 20} MB)")
+        written.append(target)
+    return written
+
+
+def unpark(run: Path) -> bool:
+    """Restores the run folder `run` from its parked state when it holds no checkpoint and a
+    parked state exists (extracted beside it, then renamed into place); returns whether it
+    did."""
+    source = parked_state(run)
+    if run_folder.checkpoint_steps(run) or not source.is_file():
+        return False
+    if run.exists() and any(run.iterdir()):
+        raise SystemExit(f"{run} holds files but no checkpoint; move it away to resume {source}")
+    run.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(dir=run.parent, prefix=f".{run.name}-"))
+    try:
+        with tarfile.open(source) as tar:
+            tar.extractall(staging, filter="data")
+        if run.exists():
+            run.rmdir()
+        staging.rename(run)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    print(f"resuming {run.name} from {source} (step {run_folder.checkpoint_steps(run)[-1]})")
+    return True
+
+
 def train(body: str, recipe: str, seed: int, steps: int) -> Path:
-    """Trains or resumes the run (module docstring); returns its folder."""
+    """Trains or resumes the run (module docstring), from its parked state when its folder is
+    missing; returns its folder."""
     cfg = run_config(body, recipe, seed, steps)
     run = Path(cfg.run)
+    unpark(run)
     resume = _same_run(run, cfg) and bool(run_folder.checkpoint_steps(run))
     if run.exists() and not resume and any(run.iterdir()):
         raise SystemExit(
@@ -422,11 +493,15 @@ def main(argv: list[str] | None = None) -> None:
         help="score new checkpoints every MINUTES until every run of the plan is scored",
     )
     sub.add_parser("render", help="rewrite the table and figures from the rows")
+    p = sub.add_parser("park", help="save each unfinished run's latest state for the next machine")
+    p.add_argument("--runs", type=Path, default=RUNS, help="the folder of the long runs")
     args = parser.parse_args(argv)
     if args.command == "train":
         print(train(args.data, args.recipe, args.seed, args.steps))
     elif args.command == "score":
         print(f"{score(args.runs, args.watch)} rows made")
+    elif args.command == "park":
+        park(args.runs)
     else:
         render()
 

@@ -269,7 +269,7 @@ def test_phase1_sharded_step_equals_single_device_step(tmp_path):
     assert out["restored_replicated"]
     assert all(np.isfinite(out["losses"][0]))
     assert "data.batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
-    assert "multiple of 2" in out["refusal"] and "--set data.batch_size=4" in out["refusal"]
+    assert "multiple of 2" in out["refusal"] and "--batch-size 4" in out["refusal"]
     assert not out["odd_run_created"]  # refused before the run folder or any compilation
 
 
@@ -280,7 +280,7 @@ def test_phase2_sharded_step_equals_single_device_step(tmp_path):
     assert out["batch_is_data_sharded"], out["batch_spec"]
     assert out["batch_devices"] == 2 and [s[0] for s in out["batch_shards"]] == [2, 2]
     assert out["gathered_finite"]
-    assert "batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
+    assert "data.batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
     assert "--batch-size 4" in out["refusal"] and not out["odd_run_created"]
 
 

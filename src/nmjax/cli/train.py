@@ -198,7 +198,8 @@ def _preset_config(args: argparse.Namespace, phase: str):
 
 def train_config(args: argparse.Namespace, phase: str):
     """The preset (or, with --resume, the run's saved config) plus the command-line options, for
-    either phase; on a resume the trainer refuses what changes the run.
+    either phase, checked as its trainer checks it (`check_config`); on a resume the trainer
+    refuses what changes the run.
 
     The options are applied in one order for both phases: --root, the phase's own (--skel-run,
     --model), --batch-size, --seed, --set, --steps (a new run counts in steps instead of epochs,
@@ -227,10 +228,9 @@ def train_config(args: argparse.Namespace, phase: str):
     if args.run is not None:
         cfg = dataclasses.replace(cfg, run=str(args.run))
     cfg = _init_from(cfg, args)
-    if phase == "skel":
-        from nmjax.train import skel
+    from nmjax.train import dyn, skel
 
-        skel.check_config(cfg)
+    {"skel": skel.check_config, "dyn": dyn.check_config}[phase](cfg)
     return cfg
 
 

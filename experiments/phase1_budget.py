@@ -11,7 +11,8 @@ preset stretched to `--steps` (every learning-rate decay keeps its fraction of t
 good (`loop.keep_every`), so that each can be scored later. Recipes:
 
 - preset:  the `cpu` preset as `nmjax train-skel --preset cpu` trains it (lr 1e-3, one Adam
-           state, clipping at 1.0, the body's `CPU_BODY_CHANGES`);
+           state, clipping at 1.0, the body's changes,
+           `PRESETS["cpu"].skel_per_data`);
 - release: the release's optimiser at the same size (lr 4e-4, Adam restarted every epoch, no
            clipping, the decays at the dataset's decay epochs as fractions of the run).
 

@@ -4,9 +4,9 @@ rate against the phase-1 step's, and the detector passes of an AIST++-sized run 
     JAX_PLATFORMS=cpu .venv/bin/python experiments/phase2_inputs_cost.py --skel-run SKEL \
         [--data synth-arm] [--steps 3000] [--bench-steps 10]
 
-1. `nmjax train-dyn --preset cpu` on the phase-1 run SKEL with `inputs=sequence`, then with
-   `inputs=crop`, each a fresh process timed from start to exit (compilation included), and the
-   crops the crop run detected (`crops_detected` of its last progress line);
+1. `nmjax train-dyn --preset cpu` on the phase-1 run SKEL with `data.inputs=sequence`, then
+   with `data.inputs=crop`, each a fresh process timed from start to exit (compilation
+   included), and the crops the crop run detected (`crops_detected` of its last progress line);
 2. `nmjax bench --phase skel detect --preset cpu`: the detector's frames/s on phase-2 crops
    (normalising and voxelising included) against the phase-1 train step's;
 3. counted, not run: the detector passes of phase 2 on AIST++ at the default preset (150 epochs
@@ -62,9 +62,10 @@ def aist_count(frames_per_sequence: int) -> dict[str, float]:
     """Detector crops of phase 2 on AIST++ at the default preset, counted."""
     cfg = dyn_preset("aist", "default")
     sequences = len(set(splits.read_published("aist")["train"]))
-    span = (cfg.frames - 1) * 2 + 1  # the release's sample rate 2
+    span = (cfg.data.frames - 1) * 2 + 1  # the release's sample rate 2
     starts = sequences * max(frames_per_sequence - span + 1, 1)
-    draws = cfg.loop.epochs * math.ceil(sequences / cfg.batch_size) * cfg.batch_size
+    batch = cfg.data.batch_size
+    draws = cfg.loop.epochs * math.ceil(sequences / batch) * batch
     expected = starts * (1.0 - math.exp(draws * math.log1p(-1.0 / starts)))
     return {
         "training_sequences": sequences,
@@ -93,7 +94,7 @@ def main() -> None:
         for inputs in ("sequence", "crop"):
             argv = ["train-dyn", "--data", args.data, "--skel-run", str(args.skel_run)]
             argv += ["--preset", "cpu", "--steps", str(args.steps), "--run", f"{tmp}/{inputs}"]
-            seconds, err = timed([*argv, "--set", f"inputs={inputs}"])
+            seconds, err = timed([*argv, "--set", f"data.inputs={inputs}"])
             found = re.findall(r"crops_detected=(\d+)/(\d+)", err)
             runs[inputs] = {"run_s": seconds}
             if found:

@@ -61,7 +61,7 @@ def _made_by(row: dict[str, Any]) -> str:
     )
     return (
         f"phase 1: row {p1['row']} (`{p1['run']}`, commit {p1['commit'][:7]}); phase 2 "
-        f"(`cpu` preset, inputs {_config(row['models']['nm']).inputs}): {models}; "
+        f"(`cpu` preset, inputs {_config(row['models']['nm']).data.inputs}): {models}; "
         f"trained and scored at {_commit(row)}"
     )
 

@@ -81,7 +81,7 @@ def main() -> None:
     args = parser.parse_args()
     stamp = provenance.stamp(METRICS)
     workdir = Path(args.workdir)
-    inputs = args.inputs or dyn_preset(args.data, args.preset).inputs
+    inputs = args.inputs or dyn_preset(args.data, args.preset).data.inputs
     if args.skel_run is None:
         skel_run = oracle_run(args.data, workdir / f"oracle-{args.data}", args.sequences, seed=0)
         source = "oracle: ground-truth joints of the synthetic generator (alpha = 1)"
@@ -94,7 +94,7 @@ def main() -> None:
         cfg = dyn_preset(args.data, args.preset)
         cfg = replace_fields(
             cfg,
-            inputs=inputs,
+            data=dataclasses.replace(cfg.data, inputs=inputs),
             skel_run=str(skel_run),
             model=dataclasses.replace(cfg.model, model=model),
             steps=args.steps,

@@ -51,7 +51,7 @@ def arm_root(tmp_path_factory):
 def test_bench_main_writes_rows_for_both_phases_and_the_detector(arm_root, tmp_path, capsys):
     out = tmp_path / "bench.json"
     argv = ["--preset", "tiny", "--steps", "2", "--warmup", "0", "--compute-dtype", "bfloat16"]
-    argv += ["--set", f"skel:data.root={arm_root}", "--set", "dyn:batch_size=2"]
+    argv += ["--set", f"skel:data.root={arm_root}", "--set", "dyn:data.batch_size=2"]
     argv += ["--set", "skel:data.grid=8", "--set", "skel:model.grid=8"]  # fewer ops to compile
     assert nmjax_main(["bench", *argv, "--out", str(out)]) == 0
     result = json.loads(out.read_text())
@@ -92,7 +92,7 @@ def test_bench_main_writes_rows_for_both_phases_and_the_detector(arm_root, tmp_p
 def test_each_job_argv_reproduces_its_row_config():
     args = parse_args(
         ["--preset", "tiny", "cpu", "--dyn-model", "nm", "vrnn", "--set", "skel:seed=4"]
-        + ["--set", "dyn:batch_size=8", "--compute-dtype", "bfloat16", "--keypoints", "7"]
+        + ["--set", "dyn:data.batch_size=8", "--compute-dtype", "bfloat16", "--keypoints", "7"]
     )
     todo = bench.jobs(args)
     assert todo == [
@@ -112,13 +112,16 @@ def test_each_job_argv_reproduces_its_row_config():
         assert (one.steps, one.warmup, one.keypoints) == (args.steps, args.warmup, 7)
     assert bench.configs(args, "skel", "tiny").model.compute_dtype == "bfloat16"
     assert bench.configs(args, "detect", "tiny") == bench.configs(args, "skel", "tiny")
-    assert bench.configs(args, "dyn", "cpu").batch_size == 8
+    assert bench.configs(args, "dyn", "cpu").data.batch_size == 8
+    # The batch has one spelling in both phases: an unprefixed item sets both.
+    both = parse_args(["--preset", "cpu", "--set", "data.batch_size=4"])
+    assert {bench.configs(both, p, "cpu").data.batch_size for p in ("skel", "dyn")} == {4}
 
 
 def test_split_overrides_by_phase():
-    items = ["skel:model.channels=16", "dyn:batch_size=8", "seed=3"]
+    items = ["skel:model.channels=16", "dyn:data.batch_size=8", "seed=3"]
     assert bench._split_overrides(items, "skel") == ["model.channels=16", "seed=3"]
-    assert bench._split_overrides(items, "dyn") == ["batch_size=8", "seed=3"]
+    assert bench._split_overrides(items, "dyn") == ["data.batch_size=8", "seed=3"]
 
 
 def test_bench_refuses_bad_override(capsys):

@@ -19,6 +19,7 @@ BAD_INPUTS = {
         (["--resume"], "--run"),
         (["--steps", "0"], "--steps"),
         (["--fit-minutes", "0"], "--fit-minutes"),
+        (["--batch-size", "0"], "--batch-size"),
     ],
     "extract-skeleton": [(["--run", MISSING], MISSING), ([], "--run")],
     "export-keypoints": [(["--run", MISSING], MISSING), (["--split", "val"], "val")],

@@ -283,7 +283,7 @@ def test_a_phase2_row_is_kept_only_when_made_by_code_that_computes_the_same_thin
     skel = Path("runs/exp/skel-synth-arm-s0-preset")
     configs = {m: driver2.dyn_config("synth-arm", m, skel) for m in driver2.MODELS}
     assert configs["nm"].model.model == "nm" and configs["vrnn"].model.model == "vrnn"
-    assert configs["nm"].run == "runs/exp/dyn-synth-arm-nm" and configs["nm"].inputs == "crop"
+    assert configs["nm"].run == "runs/exp/dyn-synth-arm-nm" and configs["nm"].data.inputs == "crop"
     source = {"row": "synth-arm-s0-preset", "commit": head, "run": str(skel)}
     stamp = {"commit": head, "dirty": False, "metrics": driver2.METRICS}
     row = {

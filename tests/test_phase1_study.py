@@ -65,7 +65,7 @@ def test_base_variant_is_the_cpu_preset_counted_in_steps(study):
     base = study.variant_config("synth-hand", "base", 12.0, 0)
     preset = skel_preset("synth-hand", "cpu")
     assert base == replace_fields(with_steps(preset, 100_000), time_limit_minutes=12.0, seed=0)
-    # The hand's cpu preset carries its body changes (config.CPU_BODY_CHANGES).
+    # The hand's cpu preset carries its body changes (`Preset.skel_per_data`).
     assert base.loop.epochs == 0 and (base.weights.vol, base.model.keypoint_temperature) == (
         10.0,
         0.5,

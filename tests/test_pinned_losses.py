@@ -13,6 +13,8 @@ reformulated convolution, not for a different loss.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from tiny_configs import small_arm_data, small_skel_config
 from tiny_runs import make_fake_run
@@ -51,7 +53,8 @@ def test_phase2_losses_are_pinned(tmp_path):
         log_every=1,
         val_every=4,
         ckpt_every=4,
-        inputs="sequence",  # the fake phase-1 run has keypoints, no detector
     )
+    # The fake phase-1 run has keypoints, no detector.
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, inputs="sequence"))
     dyn.train_dynamics(cfg, progress=False)
     np.testing.assert_allclose(_train_losses(tmp_path / "dyn"), DYN_LOSSES, rtol=RTOL)

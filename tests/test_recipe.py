@@ -10,8 +10,6 @@ import optax
 import pytest
 
 from nmjax.config import (
-    CPU_LR_MILESTONES,
-    CPU_STEPS,
     dyn_preset,
     resolve_epochs,
     skel_preset,
@@ -81,7 +79,7 @@ def test_cpu_preset_trains_the_recipe_that_measured_better_on_two_cores():
             "never",
         )
         # a step count: no epochs to resolve
-        assert resolve_epochs(cfg, 27, 2).loop.steps == CPU_STEPS
+        assert resolve_epochs(cfg, 27, 2).loop.steps == 2200
     # The hand's per-body changes (recipe_ab.md, "Variants"); the arm has none.
     hand, arm = skel_preset("synth-hand", "cpu"), skel_preset("synth-arm", "cpu")
     assert (hand.weights.vol, hand.model.keypoint_temperature) == (10.0, 0.5)
@@ -110,7 +108,7 @@ def test_a_capture_trains_a_step_count_whatever_its_sequences():
     assert (cfg.model.num_keypoints, cfg.model.sigma_g, cfg.data.sample_rate) == (24, 1.5, 1)
     # The smaller presets are the same for a capture as for any body.
     cpu = skel_preset("capture", "cpu")
-    assert (cpu.loop.steps, cpu.optim.lr_milestones) == (CPU_STEPS, CPU_LR_MILESTONES)
+    assert (cpu.loop.steps, cpu.optim.lr_milestones) == (2200, (1400, 1900))
     assert skel_preset("capture", "tiny").loop.steps == skel_preset("synth-arm", "tiny").loop.steps
 
 
@@ -118,7 +116,7 @@ def test_a_step_count_keeps_the_decays_at_their_fractions():
     cfg = with_steps(skel_preset("synth-arm", "default"), 1000)
     assert (cfg.loop.epochs, cfg.loop.steps, cfg.optim.lr_milestones) == (0, 1000, (300, 700))
     cpu = with_steps(skel_preset("synth-arm", "cpu"), 1100)
-    assert cpu.optim.lr_milestones == tuple(m // 2 for m in CPU_LR_MILESTONES)
+    assert cpu.optim.lr_milestones == (700, 950)
     assert resolve_epochs(cfg, 27, 2).loop.steps == 1000  # no epochs to resolve
 
 
@@ -186,13 +184,18 @@ def test_no_clipping_by_default_and_clipping_as_an_option():
 def test_phase2_default_is_the_releases_recipe(data):
     # The release's opt.pickle (AIST++): batch 16, T 20, 150 epochs, no decay, lr 4e-4, KL 0.003.
     cfg = dyn_preset(data, "default")
-    assert (cfg.batch_size, cfg.frames, cfg.loop.epochs, cfg.kl_weight) == (16, 20, 150, 0.003)
+    assert (cfg.data.batch_size, cfg.data.frames, cfg.loop.epochs, cfg.kl_weight) == (
+        16,
+        20,
+        150,
+        0.003,
+    )
     assert (
         cfg.optim.learning_rate == 4e-4
         and cfg.optim.clip_norm == 0.0
         and cfg.optim.optimizer_reset == "epoch"
     )
-    resolved = resolve_epochs(cfg, 1227, cfg.batch_size)
+    resolved = resolve_epochs(cfg, 1227, cfg.data.batch_size)
     assert (resolved.loop.steps_per_epoch, resolved.loop.steps) == (77, 150 * 77)
     settings = optim.OptimizerSettings.of(resolved)
     assert settings.restart_period == 77 and settings.milestones == ()

@@ -94,7 +94,7 @@ def test_phase2_resume_rules_torn_checkpoint_and_nan_stop(fake_run, tmp_path, ca
     dyn.train_dynamics(cfg, progress=False)
     argv = ["train-dyn", "--run", str(run), "--resume", "--steps", "4", "--no-progress"]
     _refused([*argv, "--seed", str(cfg.seed + 1)], capsys, run, "seed")
-    _refused([*argv, "--batch-size", str(2 * cfg.batch_size)], capsys, run, "batch_size")
+    _refused([*argv, "--batch-size", str(2 * cfg.data.batch_size)], capsys, run, "data.batch_size")
     _refused([*argv, "--set", "model.hidden=8"], capsys, run, "model.hidden")
     _refused([*argv, "--model", "vrnn"], capsys, run, "model.model")
     empty = tmp_path / "empty"
@@ -129,7 +129,7 @@ def test_missing_export_is_an_error_naming_the_command(tmp_path, capsys, fake_ru
         phase1 / "skeleton.json", json.loads((fake_run / "skeleton.json").read_text())
     )
     argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(phase1), "--preset", "tiny"]
-    sequence = ["--set", "inputs=sequence"]
+    sequence = ["--set", "data.inputs=sequence"]
     assert nmjax_main([*argv, *sequence, "--run", str(tmp_path / "dyn")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert f"nmjax export-keypoints --run {phase1}" in line
@@ -139,6 +139,6 @@ def test_missing_export_is_an_error_naming_the_command(tmp_path, capsys, fake_ru
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert "no phase-1 detector checkpoint" in line and "inputs=sequence" in line
     assert not (tmp_path / "dyn").exists()
-    assert nmjax_main([*argv, "--set", "inputs=video", "--run", str(tmp_path / "dyn")]) == 2
+    assert nmjax_main([*argv, "--set", "data.inputs=video", "--run", str(tmp_path / "dyn")]) == 2
     assert "valid inputs: crop, sequence" in capsys.readouterr().err
     assert not (tmp_path / "dyn").exists()

@@ -27,7 +27,9 @@ ORDER = (0, 1, 2, 3, 4)
 
 def _dyn_cfg(batch_size: int = 4):
     cfg = dyn_preset("synth-arm", "tiny")  # trained on a fake phase-1 run without a detector
-    return dataclasses.replace(cfg, batch_size=batch_size, inputs="sequence")
+    return dataclasses.replace(
+        cfg, data=dataclasses.replace(cfg.data, batch_size=batch_size, inputs="sequence")
+    )
 
 
 # --- the script (runs with two CPU devices) ----------------------------------------------------
@@ -146,9 +148,10 @@ def _script_dyn(workdir: Path) -> dict:
     # A smooth random trajectory table (30 frames, K=5); every start frame is valid.
     poses = np.cumsum(rng.normal(scale=0.05, size=(30, len(PARENTS), 4)), axis=0)
     poses[..., 3] = 0.8
-    poses, starts = poses.astype(np.float32), np.arange(30 - cfg.frames + 1, dtype=np.int32)
-    table = dyn_inputs.CropTable(poses, starts, cfg.frames)
-    draws = dyn.CropDraws(jax.random.key(3), table.num_starts, cfg.batch_size)
+    frames = cfg.data.frames
+    poses, starts = poses.astype(np.float32), np.arange(30 - frames + 1, dtype=np.int32)
+    table = dyn_inputs.CropTable(poses, starts, frames)
+    draws = dyn.CropDraws(jax.random.key(3), table.num_starts, cfg.data.batch_size)
     results = {}
     seen = {}
     for name, devices in (("single", jax.devices()[:1]), ("sharded", jax.devices())):
@@ -266,7 +269,7 @@ def test_phase1_sharded_step_equals_single_device_step(tmp_path):
     assert out["restored_replicated"]
     assert all(np.isfinite(out["losses"][0]))
     assert "data.batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
-    assert "multiple of 2" in out["refusal"] and "--set data.batch_size=4" in out["refusal"]
+    assert "multiple of 2" in out["refusal"] and "--batch-size 4" in out["refusal"]
     assert not out["odd_run_created"]  # refused before the run folder or any compilation
 
 
@@ -277,7 +280,7 @@ def test_phase2_sharded_step_equals_single_device_step(tmp_path):
     assert out["batch_is_data_sharded"], out["batch_spec"]
     assert out["batch_devices"] == 2 and [s[0] for s in out["batch_shards"]] == [2, 2]
     assert out["gathered_finite"]
-    assert "batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
+    assert "data.batch_size = 3" in out["refusal"] and "2 devices" in out["refusal"]
     assert "--batch-size 4" in out["refusal"] and not out["odd_run_created"]
 
 
@@ -349,9 +352,11 @@ def test_distributed_settings_from_flags_then_environment():
 
 def test_trainer_commands_accept_and_check_the_distributed_flags(capsys):
     from nmjax.cli import main as nmjax_main
-    from nmjax.cli.train import dyn_config, dyn_parser, skel_parser
+    from nmjax.cli.train import train_config, train_parser
 
-    args = skel_parser().parse_args(["--coordinator-address", "h0:1", "--num-processes", "2"])
+    args = train_parser("skel").parse_args(
+        ["--coordinator-address", "h0:1", "--num-processes", "2"]
+    )
     assert args.coordinator_address == "h0:1" and args.num_processes == 2
     assert args.process_id is None
     # A coordinator without a process id is refused before JAX is initialised.
@@ -360,8 +365,8 @@ def test_trainer_commands_accept_and_check_the_distributed_flags(capsys):
     assert "--process-id" in capsys.readouterr().err
     assert nmjax_main(["train-dyn", "--preset", "tiny", "--coordinator-address", "h0:1"]) == 2
     assert "--num-processes" in capsys.readouterr().err
-    cfg = dyn_config(dyn_parser().parse_args(["--batch-size", "6", "--process-id", "0"]))
-    assert cfg.batch_size == 6
+    args = train_parser("dyn").parse_args(["--batch-size", "6", "--process-id", "0"])
+    assert train_config(args, "dyn").data.batch_size == 6
 
 
 def _free_port() -> int:

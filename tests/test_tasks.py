@@ -390,25 +390,26 @@ def test_phase2_trains_on_crops_of_the_phase1_run(runs):
     from nmjax.train import dyn_inputs
 
     cfg = dyn_preset("synth-arm", "tiny")
-    assert cfg.inputs == "crop"
+    assert cfg.data.inputs == "crop"
+    frames = cfg.data.frames
     count, inputs = dyn_inputs.phase2_inputs(cfg, runs["skel"], K)
     data = inputs()  # the validation clips are detected now, training crops later
     detector = dyn_inputs.phase2_detector(runs["skel"])
     train_seqs = list(dyn_inputs.split_sequences(detector, "train").values())
     assert count == len(train_seqs)
-    starts = [dyn_inputs.crop_starts(seq.num_frames, cfg.frames, 1) for seq in train_seqs]
+    starts = [dyn_inputs.crop_starts(seq.num_frames, frames, 1) for seq in train_seqs]
     crops = data.crops
     assert crops.num_starts == sum(len(s) for s in starts) > len(train_seqs)
     assert crops.detected == 0 and crops.num_keypoints == K
     last = (train_seqs[-1], int(starts[-1][-1]))  # the last crop of the table
     batch = crops.batch(np.array([crops.num_starts - 1, 0, crops.num_starts - 1]))
-    assert batch.shape == (3, cfg.frames, K, 4) and crops.detected == 2  # each detected once
+    assert batch.shape == (3, frames, K, 4) and crops.detected == 2  # each detected once
     assert crops.postfix() == {"crops_detected": f"2/{crops.num_starts}"}
     np.testing.assert_allclose(
-        batch[0], dyn_inputs.detect_clips(detector, [last], cfg.frames)[0], atol=1e-6
+        batch[0], dyn_inputs.detect_clips(detector, [last], frames)[0], atol=1e-6
     )
     np.testing.assert_array_equal(batch[0], batch[2])
-    assert data.val.shape[1:] == (cfg.frames, K, 4) and data.val_cond.shape[1] == 1
+    assert data.val.shape[1:] == (frames, K, 4) and data.val_cond.shape[1] == 1
 
 
 def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_batches(
@@ -453,13 +454,13 @@ def test_crops_are_detected_when_first_drawn_and_a_resumed_run_sees_the_same_bat
     dyn.train_dynamics(straight, progress=False, step_hook=hook)
     crops = made[-1].crops
     assert before_first_step == [0]
-    assert 0 < crops.detected <= min(crops.num_starts, cfg.loop.steps * cfg.batch_size)
+    assert 0 < crops.detected <= min(crops.num_starts, cfg.loop.steps * cfg.data.batch_size)
 
     stopped = replace_fields(cfg, run=str(tmp_path / "stopped"), steps=2)
     dyn.train_dynamics(stopped, progress=False)
     resumed = replace_fields(stopped, steps=4)
     dyn.train_dynamics(resumed, resume=True, progress=False)
-    assert made[-1].crops.detected <= 2 * cfg.batch_size  # only the last two steps' draws
+    assert made[-1].crops.detected <= 2 * cfg.data.batch_size  # only the last two steps' draws
     np.testing.assert_allclose(
         losses(tmp_path / "stopped"), losses(tmp_path / "straight"), rtol=1e-6
     )

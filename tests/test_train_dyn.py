@@ -22,7 +22,7 @@ from tiny_runs import spread_convolutions
 
 from nmjax import atomic, run_folder
 from nmjax.cli import main as nmjax_main
-from nmjax.cli.train import dyn_config, dyn_parser
+from nmjax.cli.train import train_config, train_parser
 from nmjax.config import DynamicsConfig, dyn_preset
 from nmjax.config_io import replace_fields
 from nmjax.data.datasets import Sequence
@@ -113,7 +113,7 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
         poses, starts = dyn_inputs.crop_table(
             run_folder.load_trajectories(fake_run, "train"), frames
         )
-        x = dyn_inputs.CropTable(poses, starts, frames).batch(np.arange(cfg.batch_size))
+        x = dyn_inputs.CropTable(poses, starts, frames).batch(np.arange(cfg.data.batch_size))
         step = dyn.make_train_step(graphdef, cfg)
         args = (state, jnp.asarray(x), jax.random.key(0), jnp.int32(0))
         return jaxpr_stats(jax.make_jaxpr(step)(*args)), step, args
@@ -141,15 +141,16 @@ def test_train_step_scans_over_time_and_compiles_once(fake_run, tmp_path, monkey
 def test_a_few_steps_reduce_the_loss_on_a_fixed_batch(fake_run, tmp_path):
     cfg = tiny_cfg(fake_run, tmp_path)
     graphdef, state = dyn.build(cfg, PARENTS, ORDER)
-    poses, _ = dyn_inputs.crop_table(run_folder.load_trajectories(fake_run, "train"), cfg.frames)
-    x = jnp.asarray(np.repeat(poses[None, 3 : 3 + cfg.frames], cfg.batch_size, 0))  # fixed batch
+    frames = cfg.data.frames
+    poses, _ = dyn_inputs.crop_table(run_folder.load_trajectories(fake_run, "train"), frames)
+    x = jnp.asarray(np.repeat(poses[None, 3 : 3 + frames], cfg.data.batch_size, 0))  # fixed batch
     step = dyn.make_train_step(graphdef, cfg)
     recon = []
     for i in range(60):
         state, metrics = step(state, x, jax.random.key(2), jnp.int32(i))
         recon.append(float(metrics["recon"]))  # Eq. 3 before this step's update
     assert np.mean(recon[-5:]) < 0.5 * np.mean(recon[:5])
-    crop = poses[3 : 3 + cfg.frames]  # the logged baseline: x_t predicted by x_{t-1}
+    crop = poses[3 : 3 + frames]  # the logged baseline: x_t predicted by x_{t-1}
     expected = np.mean(np.sum(np.square(crop[1:] - crop[:-1]), axis=(-2, -1)))
     np.testing.assert_allclose(float(metrics["last_pose"]), expected, rtol=1e-5)
 
@@ -194,7 +195,7 @@ def test_resume_equals_uninterrupted_training(fake_run, tmp_path):
 def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, tmp_path, capsys):
     run = tmp_path / "cli"
     argv = ["--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
-    argv += ["--set", "inputs=sequence"]
+    argv += ["--set", "data.inputs=sequence"]
     assert nmjax_main(["train-dyn", *argv, "--steps", "10", "--run", str(run)]) == 0
     assert "final validation" in capsys.readouterr().out
     saved = json.loads((run / "config.json").read_text())
@@ -222,7 +223,11 @@ def test_command_trains_logs_and_generates_with_skeleton_bone_lengths(fake_run, 
 
 
 def parse_dyn(argv):
-    return dyn_parser().parse_args(argv)
+    return train_parser("dyn").parse_args(argv)
+
+
+def dyn_config(args):
+    return train_config(args, "dyn")
 
 
 def test_command_line_options_map_onto_the_config():
@@ -336,7 +341,7 @@ def test_init_from_starts_from_the_source_model_and_checks_its_network(fake_run,
     assert saved["init_from"] == str(tmp_path / "source")
 
     argv = ["train-dyn", "--data", "synth-arm", "--skel-run", str(fake_run), "--preset", "tiny"]
-    argv += ["--set", "inputs=sequence", "--run", str(tmp_path / "w")]
+    argv += ["--set", "data.inputs=sequence", "--run", str(tmp_path / "w")]
     wider = ["--set", "model.hidden=32", "--init-from", str(tmp_path / "source")]
     assert nmjax_main([*argv, *wider]) == 2
     lines = capsys.readouterr().err.strip().splitlines()

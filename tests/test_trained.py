@@ -13,6 +13,7 @@ import pytest
 from flax import nnx
 
 from nmjax import run_folder
+from nmjax.cli import main as nmjax_main
 from nmjax.config import SkelTrainConfig
 from nmjax.train import checkpoints, optim, skel, trained
 
@@ -103,3 +104,36 @@ def test_the_inference_batch_is_an_argument(legacy_runs):
     np.testing.assert_allclose(one.keypoints(voxels), three.keypoints(voxels), atol=1e-6)
     with pytest.raises(ValueError, match=">= 1"):
         one.with_batch_size(0)
+
+
+def test_a_legacy_phase2_run_resumes_from_its_old_config_json(legacy_runs, capsys):
+    # Its config.json is the first phase-2 layout ("data": "synth-arm", frames, batch_size and
+    # inputs at the top). `--resume` reads it into the data group, accepts the run's own
+    # configuration, trains on, and writes config.json back in today's layout.
+    root, _ = legacy_runs
+    skel_run, dyn_run = root / "skel", root / "dyn"
+    rng = np.random.default_rng(0)
+    k = run_folder.read_skeleton(skel_run).num_keypoints
+    for split, count in (("train", 27), ("test", 3)):  # 27 sequences: 7 steps an epoch at B=4
+        walks = np.cumsum(rng.normal(scale=0.02, size=(count, 12, k, 4)), axis=1) + 0.5
+        run_folder.write_trajectories(
+            run_folder.keypoints_file(skel_run, split), {f"s{i}": w for i, w in enumerate(walks)}
+        )
+    old = json.loads((dyn_run / run_folder.CONFIG_FILE).read_text())
+    argv = ["train-dyn", "--resume", "--run", str(dyn_run), "--steps", "3", "--no-progress"]
+    assert nmjax_main(argv) == 0, capsys.readouterr().err
+    assert run_folder.checkpoint_steps(dyn_run)[-1] == 3
+    new = json.loads((dyn_run / run_folder.CONFIG_FILE).read_text())
+    assert new["data"] == {
+        "name": "synth-arm",
+        "root": None,
+        "frames": 6,
+        "batch_size": 4,
+        "inputs": "sequence",
+    }
+    assert new["loop"] == {**old["loop"], "steps": 3}
+    assert {k: v for k, v in new.items() if k not in ("data", "loop", "run")} == {
+        k: v
+        for k, v in old.items()
+        if k not in ("data", "frames", "batch_size", "inputs", "loop", "run")
+    }

@@ -50,5 +50,5 @@ def fake_run_dyn_config(skel_run: Path | str, run: Path | str, **changes) -> Dyn
     """The tiny phase-2 preset on a fake phase-1 run (`tiny_runs.make_fake_run`), into `run`: its
     exported keypoints ("sequence" inputs), as the fake run has no detector to run on crops."""
     cfg = dyn_preset("synth-arm", "tiny")
-    changes = {"inputs": "sequence", **changes}
+    cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, inputs="sequence"))
     return replace_fields(cfg, skel_run=str(skel_run), run=str(run), **changes)

@@ -158,6 +158,16 @@ def _row(
     }
 
 
+def check_batch(cfg: Any, phase: str, mesh: Any) -> None:
+    """Refuses a batch of `cfg` (either phase) that does not split over the mesh's devices,
+    naming the `--set` item of `phase` that changes it."""
+    from nmjax.train import parallel
+
+    parallel.check_batch_size(
+        cfg.data.batch_size, "data.batch_size", mesh, f"--set {phase}:data.batch_size="
+    )
+
+
 # --- phase 1 ----------------------------------------------------------------------------------
 
 
@@ -170,9 +180,7 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
     skel.check_config(cfg)
     ensure_dataset(cfg.data.name, cfg.data.root)  # a synthetic set is generated here, untimed
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(
-        cfg.data.batch_size, "data.batch_size", mesh, "--set skel:data.batch_size="
-    )
+    check_batch(cfg, "skel", mesh)
     graphdef, state = skel.build(cfg)
     state = parallel.replicate(state, mesh)
     data_iter = pipeline.skel_iterator(cfg.data, "train", seed=cfg.seed)
@@ -231,12 +239,11 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
     from nmjax.train import dyn, dyn_inputs, parallel
 
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--set dyn:batch_size=")
+    check_batch(cfg, "dyn", mesh)
+    b, t = cfg.data.batch_size, cfg.data.frames
     parents, order = hand_tree(num_keypoints)
-    table = dyn_inputs.CropTable(
-        *dyn_inputs.crop_table({"walk": random_walk(num_keypoints)}, cfg.frames), cfg.frames
-    )
-    draws = dyn.CropDraws(jax.random.key(cfg.seed), table.num_starts, cfg.batch_size)
+    table = dyn_inputs.CropTable(*dyn_inputs.crop_table({"walk": random_walk(num_keypoints)}, t), t)
+    draws = dyn.CropDraws(jax.random.key(cfg.seed), table.num_starts, b)
     key = parallel.replicate(jax.random.key(cfg.seed), mesh)
     graphdef, state = dyn.build(cfg, parents, order)
     state = parallel.replicate(state, mesh)
@@ -265,8 +272,8 @@ def bench_dyn(cfg: Any, preset: str, num_keypoints: int, steps: int, warmup: int
     m = cfg.model
     shape = {
         "model": m.model,
-        "B": cfg.batch_size,
-        "T": cfg.frames,
+        "B": b,
+        "T": t,
         "K": num_keypoints,
         "S": m.posterior_samples,
         "D_z": m.latent,
@@ -417,7 +424,7 @@ def run_job(args: argparse.Namespace, phase: str, preset: str, model: str | None
     if phase == "skel":
         return bench_skel(cfg, preset, args.steps, args.warmup)
     if phase == "detect":
-        frames = dyn_preset(args.data, preset).frames
+        frames = dyn_preset(args.data, preset).data.frames
         return bench_detect(cfg, preset, frames, args.steps, args.warmup)
     k = args.keypoints or dataset_spec(args.data).num_keypoints
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, model=model))

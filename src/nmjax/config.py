@@ -1,20 +1,25 @@
-"""Configuration: frozen dataclasses and the per-dataset presets of paper Tables 3-8.
+"""Configuration: frozen dataclasses, the per-dataset values of paper Tables 3-8 and the presets.
 
-A run is described by one `SkelTrainConfig` (phase 1) or `DynTrainConfig` (phase 2). Presets are
-built by `skel_preset(data, preset)` / `dyn_preset(data, preset)`; every field can be overridden
-from the command line with `--set FIELD=VALUE` (`nmjax.config_io`, which also reads and writes
-config.json).
+A run is described by one `SkelTrainConfig` (phase 1) or `DynTrainConfig` (phase 2), each with the
+same groups: `data` (a `DatasetConfig`: `data.name`, `data.root`, `data.frames`,
+`data.batch_size` mean the same in both phases; each phase adds its own fields, `DataConfig`,
+`DynDataConfig`), `model`, `optim`, `loop`. A preset is a named table of values (`PRESETS`) set
+over a dataset's own configuration by `skel_preset(data, preset)` / `dyn_preset(data, preset)`;
+every field can be overridden from the command line with `--set FIELD=VALUE` (`nmjax.config_io`,
+which also reads and writes config.json, the older layouts included).
 `preset="default"` is the paper's configuration (G=64, C=128); `preset="cpu"` shrinks grid and
-channels so that training runs on a laptop-class CPU.
+channels so that training runs on a laptop-class CPU; `preset="tiny"` is for tests.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from types import MappingProxyType
+from typing import Any, ClassVar
 
-from nmjax.config_io import apply_overrides, replace_fields
+from nmjax.config_io import replace_fields, replace_paths
 
 
 @dataclass(frozen=True)
@@ -138,15 +143,32 @@ def frame_rate(name: str, sample_rate: int, fps: float = 0.0) -> float:
 
 
 @dataclass(frozen=True)
-class DataConfig:
-    """Which sequences are read and how they are cropped, normalised and voxelised."""
+class DatasetConfig:
+    """What both phases' `data` group says alike: which dataset, where it lives, and the crops a
+    step trains on (`cfg.data.name`, `root`, `frames`, `batch_size` mean the same in phase 1 and
+    phase 2).
+
+    Each phase extends it with what only it reads (`DataConfig`, `DynDataConfig`): phase 1
+    voxelises the sequences itself, so grid, sample rate, loader and augmentation are its own;
+    phase 2 reads them through the phase-1 run's detector, and adds only how its keypoint crops
+    are made.
+    """
 
     name: str = "synth-hand"
-    root: str | None = None  # default: data/<name>
-    grid: int = 64  # G
+    # The dataset's folder. Phase 1: default data/<name>. Phase 2: default the phase-1 run's
+    # (`data.root` of its config), where the "crop" inputs read the sequences from.
+    root: str | None = None
     frames: int = 10  # T of one training crop
+    batch_size: int = 3  # B, the global batch
+
+
+@dataclass(frozen=True)
+class DataConfig(DatasetConfig):
+    """Phase 1's data: which sequences are read and how they are cropped, normalised and
+    voxelised."""
+
+    grid: int = 64  # G
     sample_rate: int = 1
-    batch_size: int = 3
     seed: int = 0
     worker_count: int = 0  # grain worker processes; 0 = load in the main process
     prefetch: int = 2  # batches prepared ahead of the device
@@ -161,6 +183,24 @@ class DataConfig:
     # Frames per second of the set's sequences; 0: the dataset's (`DatasetSpec.fps`). A capture
     # records its own in meta.json, which `nmjax train-skel` copies here with its up axis.
     fps: float = 0.0
+
+
+@dataclass(frozen=True)
+class DynDataConfig(DatasetConfig):
+    """Phase 2's data: the keypoint crops of the phase-1 run that the model trains on.
+
+    The grid, sample rate and normalisation are the phase-1 run's (its detector's `DataConfig`).
+    """
+
+    frames: int = 20  # T_dyna
+    batch_size: int = 16
+    # What the model is fed (DYN_INPUTS). "crop", the release's: every T-frame crop normalised
+    # with its own bounding box and run through the frozen phase-1 detector, so the keypoints (and
+    # the detector's temporal mean behind them) are those of that crop; generation and
+    # interpolation condition on clips detected the same way. "sequence": crops cut from the
+    # whole-sequence keypoints_*.npz (each sequence normalised with one box, detected in
+    # consecutive windows), which needs no detector in phase 2: the named fast route.
+    inputs: str = "crop"
 
 
 @dataclass(frozen=True)
@@ -301,18 +341,9 @@ class DynamicsConfig:
 class DynTrainConfig:
     """Phase 2: VRNN over the keypoint trajectories of a phase-1 run (Eqs. 3-4)."""
 
-    skel_run: str | None = None  # default: latest phase-1 run of `data`
-    data: str = "synth-hand"
+    skel_run: str | None = None  # default: latest phase-1 run of `data.name`
+    data: DynDataConfig = field(default_factory=DynDataConfig)
     model: DynamicsConfig = field(default_factory=DynamicsConfig)
-    # What the model is fed (DYN_INPUTS). "crop", the release's: every T-frame crop normalised
-    # with its own bounding box and run through the frozen phase-1 detector, so the keypoints (and
-    # the detector's temporal mean behind them) are those of that crop; generation and
-    # interpolation condition on clips detected the same way. "sequence": crops cut from the
-    # whole-sequence keypoints_*.npz (each sequence normalised with one box, detected in
-    # consecutive windows), which needs no detector in phase 2: the named fast route.
-    inputs: str = "crop"
-    frames: int = 20  # T_dyna
-    batch_size: int = 16
     # The release's phase-2 recipe (its opt.pickle for AIST++: 150 epochs, no decay, lr 4e-4, no
     # clipping, Adam created anew every epoch), an epoch ceil(training sequences / batch_size)
     # steps.
@@ -327,6 +358,18 @@ class DynTrainConfig:
     # A phase-2 run whose trained model this one starts from (fine-tuning, `--init-from`), with
     # a fresh optimizer; "": the initialisation at `seed`.
     init_from: str = ""
+
+    # Top-level fields of the first phase-2 layout, before `data` was a group ("data" then the
+    # dataset's name): a config.json of that layout is read into the group, and `--set NAME=V` /
+    # `config_io.replace_fields` still take the old names (`config_io.MOVED_FIELDS`).
+    MOVED_FIELDS: ClassVar[Mapping[str, str]] = MappingProxyType(
+        {
+            "data": "data.name",
+            "frames": "data.frames",
+            "batch_size": "data.batch_size",
+            "inputs": "data.inputs",
+        }
+    )
 
 
 DYN_INPUTS = ("crop", "sequence")
@@ -367,97 +410,8 @@ def check_batch_split(
     )
 
 
-PRESETS = ("default", "cpu", "tiny")
 # How often Adam's state restarts: "epoch" (the release) or "never".
 OPTIMIZER_RESETS = ("epoch", "never")
-
-# The `cpu` preset's recipe (experiments/results/recipe_ab.md). At this size an epoch of a
-# synthetic body is 14 steps, so the release's recipe restarts Adam every 14 steps (every 409
-# on AIST++ at the paper's scale). With it, the released network's skeletons matched the true
-# tree worse on synth-arm at both seeds (edge precision, bone recall) and the hand's keypoints
-# stayed in one spot at one of two seeds; the earlier recipe did neither. The preset trains
-# that recipe: a step count, lr 1e-3, one Adam state, every step clipped at global norm 1.0,
-# 0.25x and 0.1x at the milestones.
-CPU_STEPS = 2200
-CPU_LR_MILESTONES = (1400, 1900)
-# Per-body changes to the `cpu` preset, as `--set` overrides, each measured against the preset
-# without it (experiments/results/recipe_ab.md, "Variants").
-CPU_BODY_CHANGES: dict[str, tuple[str, ...]] = {
-    # w_vol 10 (the paper's HanCo value is 0.1) and keypoints from heatmap^2, first chosen on the
-    # earlier network: on the released one, at seeds 0 and 1, a joint's nearest node came from
-    # 0.37 / 0.43 of the cube to 0.16 / 0.17, the distinct nodes from 9 / 6 to 17 / 15 and the
-    # tracking CD from 73 / 72 to 58 / 61; without them the keypoints stay in a cluster.
-    "synth-hand": ("weights.vol=10.0", "model.keypoint_temperature=0.5"),
-}
-
-
-def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainConfig:
-    """Phase-1 configuration of dataset `data` at scale `preset`.
-
-    default: the paper's network and the release's recipe (G=64, C=128, batch 3, T=10; the
-    dataset's epochs and decay epochs, Adam at 4e-4 restarted every epoch, no clipping; a
-    dataset with `DatasetSpec.steps`, the `capture` spec, counts that many steps instead, with one
-    Adam state).
-    cpu: G=32, C=16, narrow hourglass, batch 2 of T=6, for 2 CPU cores, and the recipe that
-    measured better there: `CPU_STEPS` steps at lr 1e-3, one Adam state, clipping at 1.0, and
-    the body's `CPU_BODY_CHANGES`.
-    tiny: G=16 and 20 steps, for tests (the CPU's taps-stacked convolutions: quickest to compile).
-    """
-    spec = dataset_spec(data)
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
-    weights = LossWeights(vol=spec.w_vol, traj=spec.w_traj, local=spec.w_local)
-    model = DetectorConfig(num_keypoints=spec.num_keypoints, sigma_g=spec.sigma_g)
-    data_cfg = DataConfig(name=data, sample_rate=spec.sample_rate)
-    cfg = SkelTrainConfig(
-        data=data_cfg,
-        model=model,
-        weights=weights,
-        optim=OptimConfig(decay_epochs=spec.decay_epochs),
-        loop=LoopConfig(epochs=spec.epochs),
-    )
-    if spec.steps:
-        cfg = with_steps(cfg, spec.steps)
-        cfg = replace_fields(cfg, optimizer_reset="never")
-    if preset == "cpu":
-        # Sized for 2 CPU cores: 12 frames of 32^3 per step instead of 30 of 64^3.
-        cfg = dataclasses.replace(
-            cfg,
-            data=dataclasses.replace(data_cfg, grid=32, frames=6, batch_size=2),
-            model=dataclasses.replace(model, grid=32, channels=16, hourglass_channels=(16, 24, 32)),
-            optim=dataclasses.replace(
-                cfg.optim,
-                lr_milestones=CPU_LR_MILESTONES,
-                learning_rate=1e-3,
-                clip_norm=1.0,
-                optimizer_reset="never",
-            ),
-            loop=LoopConfig(epochs=0, steps=CPU_STEPS, log_every=25, val_every=200, ckpt_every=200),
-            val_batches=8,
-        )
-        cfg = apply_overrides(cfg, CPU_BODY_CHANGES.get(data, ()))
-    elif preset == "tiny":
-        cfg = dataclasses.replace(
-            cfg,
-            data=dataclasses.replace(data_cfg, grid=16, frames=4, batch_size=2),
-            model=dataclasses.replace(
-                model,
-                grid=16,
-                num_keypoints=min(spec.num_keypoints, 6),
-                channels=8,
-                hourglass_channels=(8, 8, 8),
-                # A tiny run is nearly all compilation, and Winograd's transforms compile slowest:
-                # with the taps-stacked CPU form ("auto"'s below WINOGRAD_MIN_SIDE) the tiny
-                # preset's 20 steps on synth-arm take 14.6-15.0 s against 18.4-19.6 s, compilation
-                # included, under the test suite's XLA flags (tests/conftest.py). Winograd's own
-                # tests name it.
-                conv_form="stacked",
-            ),
-            optim=dataclasses.replace(cfg.optim, lr_milestones=(10, 15)),
-            loop=LoopConfig(epochs=0, steps=20, log_every=5, val_every=10, ckpt_every=10),
-            val_batches=1,
-        )
-    return cfg
 
 
 def steps_per_epoch(num_sequences: int, batch_size: int) -> int:
@@ -572,28 +526,136 @@ def fit_schedule(
     return replace_fields(with_steps(cfg, steps), time_limit_minutes=left / 60.0)
 
 
+# --- presets ------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One named scale of both phases, as values: the fields it sets over a dataset's own
+    configuration, by dotted name as `--set` spells them (`config_io.replace_paths`).
+
+    Why each value is what it is, and what was measured against it, is
+    experiments/results/presets.md.
+
+    Attributes:
+      skel: phase 1's changes (`skel_preset`).
+      dyn: phase 2's changes (`dyn_preset`).
+      skel_per_data: further phase-1 changes for one dataset, {dataset: changes}.
+    """
+
+    skel: Mapping[str, Any] = field(default_factory=dict)
+    dyn: Mapping[str, Any] = field(default_factory=dict)
+    skel_per_data: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+
+
+PRESETS: dict[str, Preset] = {
+    # The paper's network (G=64, C=128) and the release's recipe, per dataset (Tables 3-8).
+    "default": Preset(),
+    # Sized for 2 CPU cores (12 frames of 32^3 per phase-1 step instead of 30 of 64^3), with the
+    # phase-1 recipe that measured better there: a step count, lr 1e-3, one Adam state, every
+    # step clipped at global norm 1.0, 0.25x and 0.1x at the milestones.
+    "cpu": Preset(
+        skel={
+            "data.grid": 32,
+            "data.frames": 6,
+            "data.batch_size": 2,
+            "model.grid": 32,
+            "model.channels": 16,
+            "model.hourglass_channels": (16, 24, 32),
+            "optim.learning_rate": 1e-3,
+            "optim.lr_milestones": (1400, 1900),
+            "optim.clip_norm": 1.0,
+            "optim.optimizer_reset": "never",
+            "loop.epochs": 0,
+            "loop.steps": 2200,
+            "loop.log_every": 25,
+            "loop.val_every": 200,
+            "loop.ckpt_every": 200,
+            "val_batches": 8,
+        },
+        skel_per_data={"synth-hand": {"weights.vol": 10.0, "model.keypoint_temperature": 0.5}},
+        # A step count instead of epochs: a synthetic body's 27 training sequences are 2 steps an
+        # epoch at B = 16, so the release's 150 epochs would be 300 steps. The release's KL
+        # weight and optimizer stay.
+        dyn={
+            "model.latent": 32,
+            "model.hidden": 128,
+            "model.mlp": 64,
+            "loop.epochs": 0,
+            "loop.steps": 3000,
+        },
+    ),
+    # For tests: the smallest shapes that train, a few steps. K = 6 is below every dataset's K.
+    # The CPU's taps-stacked convolutions compile quickest, and a tiny run is nearly all
+    # compilation.
+    "tiny": Preset(
+        skel={
+            "data.grid": 16,
+            "data.frames": 4,
+            "data.batch_size": 2,
+            "model.grid": 16,
+            "model.num_keypoints": 6,
+            "model.channels": 8,
+            "model.hourglass_channels": (8, 8, 8),
+            "model.conv_form": "stacked",
+            "optim.lr_milestones": (10, 15),
+            "loop.epochs": 0,
+            "loop.steps": 20,
+            "loop.log_every": 5,
+            "loop.val_every": 10,
+            "loop.ckpt_every": 10,
+            "val_batches": 1,
+        },
+        dyn={
+            "data.frames": 6,
+            "data.batch_size": 4,
+            "model.latent": 4,
+            "model.hidden": 16,
+            "model.mlp": 16,
+            "model.posterior_samples": 3,
+            "loop.epochs": 0,
+            "loop.steps": 10,
+            "loop.log_every": 5,
+            "loop.val_every": 5,
+            "loop.ckpt_every": 5,
+        },
+    ),
+}
+
+
+def preset_of(name: str) -> Preset:
+    """The preset `name` of `PRESETS`; an unknown name lists the valid ones."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; valid presets: {', '.join(PRESETS)}")
+    return PRESETS[name]
+
+
+def skel_preset(data: str = "synth-hand", preset: str = "default") -> SkelTrainConfig:
+    """Phase-1 configuration of dataset `data` at scale `preset`.
+
+    The dataset's own configuration is the paper's network and the release's recipe with its
+    `DatasetSpec` (G=64, C=128, batch 3, T=10; the dataset's epochs, decay epochs and loss
+    weights, Adam at 4e-4 restarted every epoch, no clipping; a dataset with `DatasetSpec.steps`,
+    the `capture` spec, counts that many steps instead, with one Adam state); the preset's
+    `Preset.skel` and `Preset.skel_per_data` values are set over it.
+    """
+    spec = dataset_spec(data)
+    chosen = preset_of(preset)
+    cfg = SkelTrainConfig(
+        data=DataConfig(name=data, sample_rate=spec.sample_rate),
+        model=DetectorConfig(num_keypoints=spec.num_keypoints, sigma_g=spec.sigma_g),
+        weights=LossWeights(vol=spec.w_vol, traj=spec.w_traj, local=spec.w_local),
+        optim=OptimConfig(decay_epochs=spec.decay_epochs),
+        loop=LoopConfig(epochs=spec.epochs),
+    )
+    if spec.steps:
+        cfg = replace_fields(with_steps(cfg, spec.steps), optimizer_reset="never")
+    return replace_paths(cfg, {**chosen.skel, **chosen.skel_per_data.get(data, {})})
+
+
 def dyn_preset(data: str = "synth-hand", preset: str = "default") -> DynTrainConfig:
-    """Phase-2 configuration; `cpu` and `tiny` shrink the VRNN and the step count."""
+    """Phase-2 configuration of dataset `data` at scale `preset`: the release's (batch 16 of 20
+    frames, 150 epochs, Adam at 4e-4 restarted every epoch, KL weight 0.003) with the preset's
+    `Preset.dyn` values set over it."""
     dataset_spec(data)
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}; valid presets: {', '.join(PRESETS)}")
-    cfg = DynTrainConfig(data=data)
-    if preset == "cpu":
-        # 3,000 steps instead of epochs: a synthetic body's 27 training sequences are 2 steps an
-        # epoch at B = 16, so the release's 150 epochs would be 300 steps.
-        cfg = dataclasses.replace(
-            cfg,
-            model=DynamicsConfig(latent=32, hidden=128, mlp=64),
-            loop=dataclasses.replace(cfg.loop, epochs=0, steps=3_000),
-            # The release's KL weight (0.003) stays: 0.001 measured worse on both validation
-            # columns (experiments/results/dynamics_fix.md).
-        )
-    elif preset == "tiny":
-        cfg = dataclasses.replace(
-            cfg,
-            model=DynamicsConfig(latent=4, hidden=16, mlp=16, posterior_samples=3),
-            frames=6,
-            batch_size=4,
-            loop=LoopConfig(epochs=0, steps=10, log_every=5, val_every=5, ckpt_every=5),
-        )
-    return cfg
+    return replace_paths(DynTrainConfig(data=DynDataConfig(name=data)), preset_of(preset).dyn)

@@ -27,7 +27,7 @@ def parse_args(argv: Sequence[str]) -> argparse.Namespace:
     add_override_argument(
         parser,
         "config override for both phases, or one phase with a prefix: "
-        "skel:model.channels=16, dyn:batch_size=8",
+        "skel:model.channels=16, dyn:data.batch_size=8",
     )
     parser.add_argument(
         "--compute-dtype",

@@ -364,17 +364,20 @@ def evaluate_generation_run(
         )
     trajectories = run_folder.load_trajectories(skel_run, "test")
     conditioning = None
-    if dyn_cfg.inputs == "crop":
+    if dyn_cfg.data.inputs == "crop":
         names, _ = conditioning_clips(trajectories, cond, clips)
         x_cond = crop_conditioning(
-            dyn_inputs.phase2_detector(skel_run), names, cond, dyn_cfg.frames
+            dyn_inputs.phase2_detector(skel_run, dyn_cfg.data.root),
+            names,
+            cond,
+            dyn_cfg.data.frames,
         )
         conditioning = (names, x_cond)
     models = {"Ours": nnx.split(trained.restore_dynamics(run))}
     if vrnn_run is not None:
         models["VRNN"] = nnx.split(trained.restore_dynamics(vrnn_run))
     settings = {"horizons": list(horizons), "cond": cond, "samples": samples, "clips": clips}
-    settings["inputs"] = dyn_cfg.inputs
+    settings["inputs"] = dyn_cfg.data.inputs
     real = None
     if real_keypoints is not None:
         real = run_folder.read_trajectories(Path(real_keypoints))

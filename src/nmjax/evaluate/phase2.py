@@ -195,13 +195,13 @@ def evaluate_run(
         results["vrnn_run"] = None if vrnn_run is None else str(vrnn_run)
     else:
         skel_run, dyn_cfg = run, None
-    detector = Detector.load(skel_run)
+    detector = Detector.load(skel_run).reading(None if dyn_cfg is None else dyn_cfg.data.root)
     results["phase1"] = evaluate_phase1(detector, max_crops=max_crops)
     if dyn_cfg is not None:
         nm = nnx.split(trained.restore_dynamics(run))
         vrnn = None if vrnn_run is None else nnx.split(trained.restore_dynamics(vrnn_run))
         traj = None
-        if dyn_cfg.inputs == "sequence":
+        if dyn_cfg.data.inputs == "sequence":
             traj = run_folder.load_trajectories(skel_run, "test")
         interp = Interpolators(nm, vrnn, trajectories)
         results |= evaluate_interpolation(
@@ -211,7 +211,7 @@ def evaluate_run(
             rates,
             max_segments=max_segments,
             seed=seed,
-            frames=dyn_cfg.frames,
+            frames=dyn_cfg.data.frames,
         )
         results["settings"] = {
             "trajectories": trajectories,
@@ -219,7 +219,7 @@ def evaluate_run(
             "max_crops": max_crops,
             "seed": seed,
             "mcd_scale": MCD_SCALE,
-            "inputs": dyn_cfg.inputs,
+            "inputs": dyn_cfg.data.inputs,
         }
     out = Path(out) if out is not None else run / "eval"
     atomic.write_json(out / "results.json", results)

@@ -151,7 +151,7 @@ def import_release(
     detector, dynamics, _ = build_networks(ckpt.tensors, skel_cfg, dyn_cfg)
     stamp = provenance.stamp()  # taken when the work starts, as every results writer does
     record = import_record(checkpoint, ckpt, options, opts)
-    record["keypoint_statistics"] = str(example) if example else f"{dyn_cfg.data} test split"
+    record["keypoint_statistics"] = str(example) if example else f"{dyn_cfg.data.name} test split"
     with tqdm(total=2, desc="import-release", leave=False, disable=not progress) as bar:
         bar.set_postfix_str("keypoint statistics")
         keypoints, voxels = keypoint_motion(detector, skel_cfg, example)

@@ -104,8 +104,9 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
         seed=seed,
         run=str(run / "skel"),
     )
+    dyn = dyn_preset(dataset, "default")
     dyn = replace_fields(
-        dyn_preset(dataset, "default"),
+        dyn,
         skel_run=str(run / "skel"),
         model=DynamicsConfig(
             model="nm",
@@ -114,8 +115,11 @@ def configs_from_options(options: Mapping[str, Any], widths: Widths, run: str | 
             mlp=widths.mlp,
             posterior_samples=POSTERIOR_SAMPLES,
         ),
-        frames=int(_option(options, "Ttot")),
-        batch_size=int(_option(options, "nbatch")),
+        data=dataclasses.replace(
+            dyn.data,
+            frames=int(_option(options, "Ttot")),
+            batch_size=int(_option(options, "nbatch")),
+        ),
         epochs=int(_option(options, "nepoch")),
         learning_rate=learning_rate,
         # its clip_grad_norm_ runs on gradients already applied (docs/architecture.md §6b)

@@ -74,7 +74,7 @@ def generation_clips(
     """Frames 0 .. cond + gen - 1 of the first `count` test sequences, conditioned as trained.
 
     "sequence": cut from keypoints_test.npz. "crop" (the release's generation): the clip is
-    normalised with the bounding box of its first crop (max(T, cond) frames, T = `cfg.frames`)
+    normalised with the bounding box of its first crop (max(T, cond) frames, T = `cfg.data.frames`)
     and voxelised; the conditioning keypoints, keypoints[:, :cond], are its first `cond` frames
     run through the detector on their own; the frames after them (the true continuation) are
     detected in consecutive windows of T frames in the same coordinates.
@@ -86,28 +86,29 @@ def generation_clips(
       voxels: also return each clip's first voxel frame.
     """
     total = cond + gen
-    if cfg.inputs == "sequence":
+    frames = cfg.data.frames
+    if cfg.data.inputs == "sequence":
         trajectories = run_folder.load_trajectories(skel_run, "test")
         names, observed = pick_inputs(trajectories, count, total)
         real = np.array([min(len(trajectories[n]), total) for n in names], np.int32)
         first = None
         if voxels:
-            detector = trained.Detector.load(skel_run)
+            detector = trained.Detector.load(skel_run).reading(cfg.data.root)
             seqs, data = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data
             first = np.stack(
                 [trained.sequence_voxels(seqs[n], data.sample_rate, data.grid)[0] for n in names]
             )
         return TaskClips(names, observed, real, first)
-    detector = dyn_inputs.phase2_detector(skel_run)
+    detector = dyn_inputs.phase2_detector(skel_run, cfg.data.root)
     seqs, data = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data
     names = sorted(seqs)[:count]
-    box = max(cfg.frames, cond)
+    box = max(frames, cond)
     real = np.array([min(-(-seqs[n].num_frames // data.sample_rate), total) for n in names])
     observed, first = [], []
     for name, frames in zip(names, real, strict=True):
         vox = dyn_inputs.clip_voxels(seqs[name], 0, max(total, box), data, box_frames=box)[:total]
         x_cond = detector.keypoints(vox[None, :cond])[0]
-        rest = detector.keypoints(trained.sequence_windows(vox, cfg.frames))
+        rest = detector.keypoints(trained.sequence_windows(vox, frames))
         rest = rest.reshape(-1, *rest.shape[2:])[:total]
         clip = np.concatenate([x_cond, rest[cond:]])
         clip[frames:] = clip[frames - 1]  # past the sequence's end the last real frame is held

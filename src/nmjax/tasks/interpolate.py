@@ -180,16 +180,16 @@ def interpolation_clips(cfg: DynTrainConfig, skel_run: Path, count: int, gap: in
     0, normalised with its own bounding box and run through the detector as one crop (its first
     gap + 1 frames kept), as the release's interpolation takes its keyframes.
     """
-    if cfg.inputs == "sequence":
+    if cfg.data.inputs == "sequence":
         trajectories = run_folder.load_trajectories(skel_run, "test")
         names, truth = pick_inputs(trajectories, count, gap + 1)
         real = np.array([min(len(trajectories[n]), gap + 1) for n in names], np.int32)
         return TaskClips(names, truth, real)
-    detector = dyn_inputs.phase2_detector(skel_run)
+    detector = dyn_inputs.phase2_detector(skel_run, cfg.data.root)
     seqs, rate = dyn_inputs.split_sequences(detector, "test"), detector.cfg.data.sample_rate
     names = sorted(seqs)[:count]
     clips = [(seqs[n], 0) for n in names]
-    truth = dyn_inputs.detect_clips(detector, clips, max(cfg.frames, gap + 1))[:, : gap + 1]
+    truth = dyn_inputs.detect_clips(detector, clips, max(cfg.data.frames, gap + 1))[:, : gap + 1]
     real = [min(-(-seqs[n].num_frames // rate), gap + 1) for n in names]
     return TaskClips(names, truth, np.array(real, np.int32))
 

@@ -2,7 +2,7 @@
 
 `train_dynamics` is the entry. It reads a phase-1 run folder (contract C10, `nmjax.run_folder`):
 `skeleton.json` (parents, root, order) and the frozen detector's keypoints, by
-`DynTrainConfig.inputs` the detector on each crop ("crop", the release's) or the exported
+`DynTrainConfig.data.inputs` the detector on each crop ("crop", the release's) or the exported
 whole-sequence keypoints ("sequence"); `dyn_inputs` builds both (`dyn_inputs.Phase2Inputs`).
 
 The crops of step s are the starts drawn with the key fold_in(seed key, s) (`crop_draws`, a block
@@ -130,7 +130,9 @@ class StepSettings:
 
     @classmethod
     def of(cls, cfg: DynTrainConfig) -> StepSettings:
-        return cls(cfg.batch_size, cfg.frames, cfg.kl_weight, optim.OptimizerSettings.of(cfg))
+        return cls(
+            cfg.data.batch_size, cfg.data.frames, cfg.kl_weight, optim.OptimizerSettings.of(cfg)
+        )
 
 
 @functools.partial(
@@ -266,12 +268,13 @@ def eval_step(state, x, x_cond, key, *, graphdef):
 
 def check_config(cfg: DynTrainConfig) -> None:
     """Refuses (ValueError naming the field) a configuration that cannot train, before compiling."""
-    loop.check_positive({"batch_size": cfg.batch_size, "frames": cfg.frames})
+    loop.check_positive({"data.batch_size": cfg.data.batch_size, "data.frames": cfg.data.frames})
     loop.check_loop(cfg.loop)
     optim.check_schedule(cfg.optim, cfg.loop)
-    if cfg.inputs not in DYN_INPUTS:
+    if cfg.data.inputs not in DYN_INPUTS:
         raise ValueError(
-            f"inputs = {cfg.inputs!r} is not a phase-2 input; valid inputs: {', '.join(DYN_INPUTS)}"
+            f"data.inputs = {cfg.data.inputs!r} is not a phase-2 input; valid inputs: "
+            f"{', '.join(DYN_INPUTS)}"
         )
 
 
@@ -284,13 +287,13 @@ def train_dynamics(
     step_hook: Callable[[int, Any], Any] | None = None,
 ) -> loop.TrainSummary:
     """Phase 2's entry: trains the dynamics model on the phase-1 run `cfg.skel_run` (default: the
-    latest of `cfg.data`) into the run folder `cfg.run` until `cfg.loop.steps`.
+    latest of `cfg.data.name`) into the run folder `cfg.run` until `cfg.loop.steps`.
 
     The run folder is `cfg.run`, else a new one under the run root
     (`run_folder.config_run_dir`); the epochs count the training sequences
     (`config.resolve_epochs`), as `skel.train_skeleton` counts its own. The resolved phase-1
     folder is stored in config.json, so later tasks rebuild the model from the run folder alone.
-    The skeleton and, by `cfg.inputs`, the detector or the exported keypoints are read and
+    The skeleton and, by `cfg.data.inputs`, the detector or the exported keypoints are read and
     checked (`dyn_inputs.phase2_inputs`) before the run folder is made; the inputs are built
     once it is accepted.
 
@@ -307,15 +310,15 @@ def train_dynamics(
       NonFiniteLossError: the loss became NaN/inf (the last good checkpoint is kept).
     """
     check_config(cfg)
-    skel_run = run_folder.find_skel_run(cfg.data, cfg.skel_run)
+    skel_run = run_folder.find_skel_run(cfg.data.name, cfg.skel_run)
     tree = run_folder.read_skeleton(skel_run)
     parents, order = tree.parents, tree.order
     cfg = dataclasses.replace(cfg, skel_run=str(skel_run))
     train_sequences, inputs = dyn_inputs.phase2_inputs(cfg, skel_run, tree.num_keypoints)
-    cfg = resolve_epochs(cfg, train_sequences, cfg.batch_size)
+    cfg = resolve_epochs(cfg, train_sequences, cfg.data.batch_size)
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(cfg.batch_size, "batch_size", mesh, "--batch-size ")
-    run_dir = run_folder.config_run_dir(cfg.run, "dyn", cfg.data, cfg.model.model)
+    parallel.check_batch_size(cfg.data.batch_size, "data.batch_size", mesh, "--batch-size ")
+    run_dir = run_folder.config_run_dir(cfg.run, "dyn", cfg.data.name, cfg.model.model)
     graphdef, state = build(cfg, parents, order)
     if cfg.init_from and not resume:  # checked before the run folder is made
         initial = initial_weights(cfg, len(parents))
@@ -327,7 +330,7 @@ def train_dynamics(
     val_x, val_cond, base_key, val_key = parallel.replicate(
         (data.val, data.val_cond, jax.random.key(cfg.seed), jax.random.key(cfg.seed + 1)), mesh
     )
-    draws = CropDraws(jax.random.key(cfg.seed), data.crops.num_starts, cfg.batch_size)
+    draws = CropDraws(jax.random.key(cfg.seed), data.crops.num_starts, cfg.data.batch_size)
     state = parallel.replicate(state, mesh)
     step_fn = make_train_step(graphdef, cfg, mesh)
 

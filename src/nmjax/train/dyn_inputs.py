@@ -1,5 +1,5 @@
 """What phase 2 is fed: the keypoint crops it trains on, its validation crops and the keypoints
-its validation generation conditions on, by one of two routes (`DynTrainConfig.inputs`), both
+its validation generation conditions on, by one of two routes (`DynTrainConfig.data.inputs`), both
 a `Phase2Inputs`:
 
 - "crop" (the release's): every T-frame training crop normalised with its own bounding box and
@@ -55,7 +55,7 @@ class TrainingCrops(Protocol):
 
 
 class Phase2Inputs(NamedTuple):
-    """What phase 2 trains and validates on, whichever `DynTrainConfig.inputs` made it.
+    """What phase 2 trains and validates on, whichever `DynTrainConfig.data.inputs` made it.
 
     Attributes:
       crops: the training crops (`TrainingCrops`); each step draws B of its starts uniformly.
@@ -300,14 +300,16 @@ def crop_inputs(detector: Detector, train: list[Any], test: list[Any], frames: i
 
 
 def split_sequences(detector: Detector, split: str) -> dict[str, Any]:
-    """{name: Sequence} of a split of the detector's dataset (its phase-1 run's data and root)."""
+    """{name: Sequence} of a split of the detector's dataset (the name and root of its config:
+    its phase-1 run's, or the root `Detector.reading` gave it)."""
     data = detector.cfg.data
     return {seq.name: seq for seq in load_sequences(data.name, split, data.root)}
 
 
-def phase2_detector(skel_run: str | Path) -> Detector:
+def phase2_detector(skel_run: str | Path, root: str | None = None) -> Detector:
     """The detector phase 2 runs on crops ("crop" inputs): the phase-1 run's detector as every
-    reader of the run takes it (`Detector.load`: the best checkpoint by validation loss).
+    reader of the run takes it (`Detector.load`: the best checkpoint by validation loss), reading
+    the sequences from `root` (the phase-2 run's `data.root`; None: the phase-1 run's).
 
     Raises:
       FileNotFoundError: the folder holds no detector checkpoint (names both ways out).
@@ -318,9 +320,9 @@ def phase2_detector(skel_run: str | Path) -> Detector:
         raise FileNotFoundError(
             f"{skel_run} holds no phase-1 detector checkpoint, and phase-2 inputs 'crop' run the "
             "detector on every crop; give a trained phase-1 run (--skel-run) or train on its "
-            "exported keypoints with --set inputs=sequence"
+            "exported keypoints with --set data.inputs=sequence"
         )
-    return Detector.load(skel_run)
+    return Detector.load(skel_run).reading(root)
 
 
 # --- from a phase-1 run folder -----------------------------------------------------------------
@@ -329,14 +331,15 @@ def phase2_detector(skel_run: str | Path) -> Detector:
 def phase2_inputs(
     cfg: DynTrainConfig, skel_run: Path, num_keypoints: int
 ) -> tuple[int, Callable[[], Phase2Inputs]]:
-    """The inputs of `cfg.inputs` from the phase-1 run `skel_run`, checked but not yet built.
+    """The inputs of `cfg.data.inputs` from the phase-1 run `skel_run`, checked but not yet
+    built.
 
     "sequence" reads the run's exported keypoints now; "crop" restores its detector and lists
     its dataset's sequences now, and detects the validation clips only when the maker is called
     (the training crops later still, as batches draw them).
 
     Args:
-      cfg: the phase-2 configuration (its `inputs` and T = `frames`).
+      cfg: the phase-2 configuration (its `data.inputs`, T = `data.frames` and `data.root`).
       skel_run: the phase-1 run folder.
       num_keypoints: K of the run's skeleton; inputs of another K are refused.
 
@@ -348,7 +351,8 @@ def phase2_inputs(
       FileNotFoundError, ValueError: a missing export or detector, or K that differs from the
         skeleton's (naming the command that makes them agree).
     """
-    if cfg.inputs == "sequence":
+    frames = cfg.data.frames
+    if cfg.data.inputs == "sequence":
         trajectories = {
             split: run_folder.load_trajectories(skel_run, split) for split in run_folder.SPLITS
         }
@@ -360,8 +364,8 @@ def phase2_inputs(
                     f"but skeleton.json has {num_keypoints} joints; re-export the keypoints "
                     f"with `nmjax export-keypoints --run {skel_run}`"
                 )
-        return len(trajectories["train"]), lambda: sequence_inputs(trajectories, cfg.frames)
-    detector = phase2_detector(skel_run)
+        return len(trajectories["train"]), lambda: sequence_inputs(trajectories, frames)
+    detector = phase2_detector(skel_run, cfg.data.root)
     if detector.cfg.model.num_keypoints != num_keypoints:
         raise ValueError(
             f"the detector of {skel_run} has K={detector.cfg.model.num_keypoints} keypoints "
@@ -369,6 +373,4 @@ def phase2_inputs(
             f"again with `nmjax extract-skeleton --run {skel_run}`"
         )
     seqs = {split: list(split_sequences(detector, split).values()) for split in run_folder.SPLITS}
-    return len(seqs["train"]), lambda: crop_inputs(
-        detector, seqs["train"], seqs["test"], cfg.frames
-    )
+    return len(seqs["train"]), lambda: crop_inputs(detector, seqs["train"], seqs["test"], frames)

@@ -53,8 +53,7 @@ def check_config(cfg: SkelTrainConfig) -> None:
             f"data.grid ({cfg.data.grid}) and model.grid ({cfg.model.grid}) must be equal; set "
             "both (e.g. --set data.grid=32 --set model.grid=32)"
         )
-    if cfg.data.batch_size < 1:
-        raise ValueError(f"data.batch_size must be >= 1, got {cfg.data.batch_size}")
+    loop.check_positive({"data.batch_size": cfg.data.batch_size})
     loop.check_loop(cfg.loop)
     loop.check_positive({"val_batches": cfg.val_batches})
     optim.check_schedule(cfg.optim, cfg.loop)
@@ -283,9 +282,7 @@ def train_skeleton(
         # Each host would read its own clock and could stop one step before the others.
         raise ValueError("time_limit_minutes works in single-process runs only; set steps instead")
     mesh = parallel.data_mesh()
-    parallel.check_batch_size(
-        cfg.data.batch_size, "data.batch_size", mesh, "--set data.batch_size="
-    )
+    parallel.check_batch_size(cfg.data.batch_size, "data.batch_size", mesh, "--batch-size ")
     run_dir = run_folder.config_run_dir(cfg.run, "skel", cfg.data.name)
     # A synthetic set is generated on first use here, explicitly: the loaders never write.
     ensure_dataset(cfg.data.name, cfg.data.root)

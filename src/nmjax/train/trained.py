@@ -144,6 +144,14 @@ class Detector:
         # A trained state may be replicated over several hosts; inference here is local.
         return cls(Path(run), cfg, graphdef, parallel.to_local(state), batch)
 
+    def reading(self, root: str | None) -> Detector:
+        """The same detector reading its dataset's sequences from `root` instead of the folder
+        its run's config names (a phase-2 run's `data.root`); None: its run's."""
+        if root is None:
+            return self
+        data = dataclasses.replace(self.cfg.data, root=root)
+        return dataclasses.replace(self, cfg=dataclasses.replace(self.cfg, data=data))
+
     def with_batch_size(self, batch_size: int) -> Detector:
         """The same detector, run `batch_size` crops at a time."""
         if batch_size < 1:
@@ -393,7 +401,7 @@ def find_vrnn_run(dyn_run: Path, skel_run: Path, inputs: str = "crop") -> Path |
         except (ValueError, FileNotFoundError, TypeError):
             continue
         same = cfg.skel_run and Path(cfg.skel_run).resolve() == Path(skel_run).resolve()
-        same = same and cfg.inputs == inputs
+        same = same and cfg.data.inputs == inputs
         if cfg.model.model == "vrnn" and same and bool(run_folder.checkpoint_steps(candidate)):
             return candidate
     return None
@@ -413,7 +421,7 @@ def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig,
         )
     skel_run = Path(dyn_cfg.skel_run)
     if vrnn_run is None:
-        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run, dyn_cfg.inputs)
+        return dyn_cfg, skel_run, find_vrnn_run(run, skel_run, dyn_cfg.data.inputs)
     vrnn_run = Path(vrnn_run)
     vrnn_cfg = run_folder.load_config(vrnn_run, DynTrainConfig)
     vrnn_skel = vrnn_cfg.skel_run
@@ -423,11 +431,11 @@ def phase2_runs(run: Path, vrnn_run: str | Path | None) -> tuple[DynTrainConfig,
             f"{skel_run}; compare models of the same skeleton (train the baseline with "
             f"`nmjax train-dyn --model vrnn --skel-run {skel_run}`)"
         )
-    if vrnn_cfg.inputs != dyn_cfg.inputs:
+    if vrnn_cfg.data.inputs != dyn_cfg.data.inputs:
         raise ValueError(
-            f"--vrnn-run {vrnn_run} was trained on inputs '{vrnn_cfg.inputs}', {run} on "
-            f"'{dyn_cfg.inputs}'; both methods condition on the same keypoints, so train the "
+            f"--vrnn-run {vrnn_run} was trained on inputs '{vrnn_cfg.data.inputs}', {run} on "
+            f"'{dyn_cfg.data.inputs}'; both methods condition on the same keypoints, so train the "
             f"baseline with `nmjax train-dyn --model vrnn --skel-run {skel_run} --set "
-            f"inputs={dyn_cfg.inputs}`"
+            f"data.inputs={dyn_cfg.data.inputs}`"
         )
     return dyn_cfg, skel_run, vrnn_run

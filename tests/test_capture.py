@@ -74,6 +74,25 @@ def test_point_frames_of_every_format_are_resampled_to_the_points_asked_for(tmp_
                 assert distance_to(cloud.astype(np.float32), vertices[t]).max() < 1e-5
 
 
+def test_a_folder_of_frames_handed_over_as_it_is_is_one_sequence(tmp_path):
+    raw, out = tmp_path / "wave", tmp_path / "out"
+    frames = list(body(4, POINTS))
+    write_frames(raw, frames, ".ply")
+    (raw / "readme.txt").write_text("no frame number: not a frame\n")
+    assert list(prepare.find_sequences(raw)) == ["wave"]
+    assert prepare_capture("--from", raw, "--root", out, "--points", POINTS) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["frames"] == {"wave": 4, "wave_test": 4}  # too short to cut: a copy
+    (seq,) = load_sequences("capture", "train", out)
+    np.testing.assert_array_equal(seq.vertices, frames)
+    # .npy files directly in RAW stay (T, N, 3) arrays, one sequence each.
+    arrays = tmp_path / "arrays"
+    arrays.mkdir()
+    np.save(arrays / "frame_000.npy", frames[0])
+    with pytest.raises(ValueError, match=r"frame_000\.npy holds an array of shape \(256, 3\)"):
+        prepare.raw_sequences(arrays)
+
+
 @pytest.mark.parametrize("suffix", [".npy", ".npz"])
 def test_one_array_per_sequence(tmp_path, suffix):
     raw, out = tmp_path / "raw", tmp_path / "out"

@@ -189,6 +189,19 @@ def test_a_point_capture_is_skinned_as_glTF_points(point_rig):
     assert (meta["units"], meta["fps"]) == ("cm", FPS)
 
 
+def test_view_plays_a_point_rig_as_moving_points(point_rig):
+    from nmjax import view
+
+    read = gltf.read(point_rig["out"])
+    viewer = view.open_view(point_rig["out"], port=0)
+    try:
+        assert viewer.num_frames == FRAMES and "/gltf/points" in viewer.nodes
+        viewer.frame.value = 5  # the slider redraws
+        np.testing.assert_allclose(np.asarray(viewer.mesh.points), read.vertices[5], atol=1e-5)
+    finally:
+        viewer.stop()
+
+
 def test_the_summary_names_joints_frames_files_time_and_fit_error(mesh_rig):
     result = mesh_rig["first"]
     lines = result.summary().splitlines()
@@ -411,3 +424,43 @@ def test_blender_deforms_the_rig_as_nmjax_skins_it(which, request, tmp_path):
     assert sorted(report["bvh"]["bones"]) == sorted(rig.names)
     first, last = report["bvh"]["frame_range"]
     assert last - first + 1 == FRAMES
+
+
+# --- the benchmark script ---------------------------------------------------------------------
+
+
+def test_the_rig_benchmark_runs_at_a_tiny_size(capsys):
+    from experiment_scripts import load_experiment
+
+    argv = ["--preset", "tiny", "--frames", "12", "--points", "200", "--vertices", "3000"]
+    argv += ["--train-steps", "2", "--step-steps", "1", *(a for s in SMALL for a in ("--set", s))]
+    rows = load_experiment("bench_rig.py").main(argv)
+    assert set(rows["stage_s"]) == {
+        "prepare", "skeleton", "motion", "skin", "fit", "write", "picture"
+    }  # fmt: skip
+    assert all(v >= 0 for v in rows["stage_s"].values())
+    assert rows["beyond_training_s"] == pytest.approx(sum(rows["stage_s"].values()))
+    assert rows["mesh_vertices"] >= 3000 and rows["frames"] == 12
+    assert rows["phase1_steps"] == 20 and rows["step_s"] > 0  # the tiny preset's 20 steps
+    assert rows["training_min"] * 60 >= 20 * rows["step_s"]
+    printed = capsys.readouterr().out
+    assert "beyond training" in printed and "phase 1 (derived): 20 steps" in printed
+
+
+def test_minutes_fit_the_steps_to_the_budget_and_a_rerun_keeps_them(
+    mesh_rig, tmp_path, monkeypatch, capsys
+):
+    from nmjax import bench
+
+    # A 100 s step, whatever this machine does: 22 minutes fit 12 of them (with the 8% kept for
+    # compiling and validating), far more than the tiny steps take here.
+    monkeypatch.setattr(
+        bench, "bench_skel", lambda *a, **k: {"compute_s_median": 99.8, "load_s_per_step": 0.2}
+    )
+    argv = cli_argv(mesh_rig["raw"], tmp_path / "m.glb", "--work", tmp_path / "work")
+    del argv[argv.index("--steps") : argv.index("--steps") + 2]  # the budget is the minutes
+    assert nmjax_main([*argv, "--minutes", "22"]) == 0
+    assert "(phase 1 trained, 12 steps" in capsys.readouterr().out
+    assert run_folder.checkpoint_steps(tmp_path / "work" / "skel")[-1] == 12
+    assert nmjax_main([*argv, "--minutes", "22", "--overwrite"]) == 0
+    assert "(phase 1 reused, 12 steps" in capsys.readouterr().out

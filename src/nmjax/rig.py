@@ -4,7 +4,8 @@
               [--steps N | --minutes M] [--work DIR] [--up z] [--fps 30] [--units m]
 
 `make_rig` runs the stages of docs/architecture.md §3 on a capture `nmjax prepare-data --from
-RAW` reads (one folder of mesh or point frames per sequence, or one (T, N, 3) array each):
+RAW` reads (a folder of mesh or point frames, one such folder per sequence, or one (T, N, 3)
+array per sequence):
 
 1. prepare: RAW as the generic `capture` set into WORK/data (`prepare.prepare_capture`);
 2. phase 1: the detector and affinity trained on it into the run folder WORK/skel
@@ -137,9 +138,8 @@ class RigResult:
     Attributes:
       rig: the rig as written: glTF's axes (+Y up), the capture's units.
       options: what was asked; plan: what `check` found.
-      skel_run: the phase-1 run folder; keypoints: the detector's keypoints (T, K) kept nodes.
-      num_keypoints: K; steps: the phase-1 run's steps; phase1: "trained", "resumed from step
-        N" or "reused".
+      skel_run: the phase-1 run folder; num_keypoints: its detector's K; steps: the run's
+        steps; phase1: "trained", "resumed from step N" or "reused".
       fit: {"cd": x1e4 in the cube, "cd_capture": the capture's units, squared, "frames": n}.
       seconds: wall time of each stage ("prepare", "phase1", "motion", "skin", "fit", "write",
         "picture") and "total".

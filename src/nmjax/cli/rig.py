@@ -14,8 +14,9 @@ from nmjax.cli import parser, positive
 
 EPILOG = """\
 stages (each kept in --work, so a rerun of the same command picks up where it stopped):
-  prepare   RAW as `nmjax prepare-data --from RAW` reads it (one folder of mesh or point
-            frames per sequence, or one (T, N, 3) .npy / .npz), into WORK/data
+  prepare   RAW as `nmjax prepare-data --from RAW` reads it (a folder of mesh or point
+            frames, one such folder per sequence, or one (T, N, 3) .npy / .npz per sequence),
+            into WORK/data
   phase 1   the keypoint detector and affinity (the `capture` spec), then Algorithm 1's
             skeleton, into the run folder WORK/skel
   motion    the detector's keypoints of every frame of --seq, mapped back into the capture's
@@ -48,13 +49,14 @@ def rig(argv: list[str]) -> int:
         metavar="RAW",
         type=Path,
         required=True,
-        help="your capture: one folder of mesh or point frames per sequence (or one (T, N, 3) "
-        ".npy / .npz each), as `nmjax prepare-data --from` reads",
+        help="your capture: a folder of mesh or point frames, or a folder of such folders (one "
+        "a sequence) or of (T, N, 3) .npy / .npz, as `nmjax prepare-data --from` reads",
     )
     p.add_argument(
         "--out",
         type=Path,
         required=True,
+        metavar="RIG.glb",
         help="the rig, a .glb file; RIG.bvh and RIG.png are written beside it",
     )
     p.add_argument(

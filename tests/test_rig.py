@@ -31,6 +31,7 @@ from programs import require_program
 
 from nmjax import run_folder
 from nmjax.cli import main as nmjax_main
+from nmjax.config import SkelTrainConfig
 from nmjax.data.datasets import whole_sequence
 from nmjax.data.layout import CAPTURE
 from nmjax.data.normalize import apply_box, normalization_box
@@ -123,9 +124,20 @@ def mesh_rig(tmp_path_factory):
     return rigged(tmp_path_factory, "obj")
 
 
+# The point capture trains within `--minutes`: a 100 s step, whatever this machine does, makes
+# 7.5 minutes fit 4 steps (with the 8% kept for compiling and validating), far more time than
+# the tiny steps take here; its rerun keeps the budget and trains nothing.
+MINUTES, STEP_S = 7.5, 100.0
+
+
 @pytest.fixture(scope="module")
 def point_rig(tmp_path_factory):
-    return rigged(tmp_path_factory, "ply", units="cm")
+    from nmjax import bench
+
+    timed = {"compute_s_median": STEP_S - 0.2, "load_s_per_step": 0.2}
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(bench, "bench_skel", lambda *args, **kwargs: timed)
+        return rigged(tmp_path_factory, "ply", units="cm", steps=None, minutes=MINUTES)
 
 
 def size_of(x: np.ndarray) -> float:
@@ -197,7 +209,11 @@ def test_view_plays_a_point_rig_as_moving_points(point_rig):
     try:
         assert viewer.num_frames == FRAMES and "/gltf/points" in viewer.nodes
         viewer.frame.value = 5  # the slider redraws
-        np.testing.assert_allclose(np.asarray(viewer.mesh.points), read.vertices[5], atol=1e-5)
+        # viser keeps a point cloud's positions in float16 (its default precision).
+        size = size_of(read.vertices)
+        np.testing.assert_allclose(
+            np.asarray(viewer.mesh.points), read.vertices[5], atol=2e-3 * size
+        )
     finally:
         viewer.stop()
 
@@ -218,6 +234,14 @@ def test_the_summary_names_joints_frames_files_time_and_fit_error(mesh_rig):
 
 
 # --- the work folder: reused, resumed --------------------------------------------------------
+
+
+def test_minutes_fit_the_steps_to_the_budget_and_a_rerun_keeps_them(point_rig):
+    first, again = point_rig["first"], point_rig["result"]
+    assert (first.phase1, first.steps) == ("trained", 4)  # floor(7.5 x 60 / (100 x 1.08))
+    saved = run_folder.load_config(first.skel_run, SkelTrainConfig)
+    assert saved.loop.steps == 4 and 7.0 < saved.loop.time_limit_minutes <= MINUTES
+    assert (again.phase1, again.steps) == ("reused", 4)
 
 
 def test_a_rerun_reuses_every_stage_and_trains_nothing(mesh_rig):
@@ -445,22 +469,3 @@ def test_the_rig_benchmark_runs_at_a_tiny_size(capsys):
     assert rows["training_min"] * 60 >= 20 * rows["step_s"]
     printed = capsys.readouterr().out
     assert "beyond training" in printed and "phase 1 (derived): 20 steps" in printed
-
-
-def test_minutes_fit_the_steps_to_the_budget_and_a_rerun_keeps_them(
-    mesh_rig, tmp_path, monkeypatch, capsys
-):
-    from nmjax import bench
-
-    # A 100 s step, whatever this machine does: 22 minutes fit 12 of them (with the 8% kept for
-    # compiling and validating), far more than the tiny steps take here.
-    monkeypatch.setattr(
-        bench, "bench_skel", lambda *a, **k: {"compute_s_median": 99.8, "load_s_per_step": 0.2}
-    )
-    argv = cli_argv(mesh_rig["raw"], tmp_path / "m.glb", "--work", tmp_path / "work")
-    del argv[argv.index("--steps") : argv.index("--steps") + 2]  # the budget is the minutes
-    assert nmjax_main([*argv, "--minutes", "22"]) == 0
-    assert "(phase 1 trained, 12 steps" in capsys.readouterr().out
-    assert run_folder.checkpoint_steps(tmp_path / "work" / "skel")[-1] == 12
-    assert nmjax_main([*argv, "--minutes", "22", "--overwrite"]) == 0
-    assert "(phase 1 reused, 12 steps" in capsys.readouterr().out

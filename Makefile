@@ -12,7 +12,7 @@ ARGS ?=
 SKEL_FLAGS := --data $(DATA) --preset $(PRESET) $(if $(STEPS),--steps $(STEPS)) \
 	$(if $(RUN),--run $(RUN)) $(if $(filter 1,$(RESUME)),--resume)
 
-.PHONY: install test test-slow lint format train-skel train-dyn prepare-data experiments clean
+.PHONY: install test test-slow lint format rig train-skel train-dyn prepare-data experiments clean
 
 install:
 	$(PYTHON) -m venv $(VENV)
@@ -35,6 +35,15 @@ format:
 
 prepare-data:
 	$(NMJAX) prepare-data --data $(DATA) $(ARGS)
+
+# Your capture to a rig in one command: FROM (one folder of mesh or point frames, or one folder
+# per sequence), OUT (RIG.glb; RIG.bvh and RIG.png beside it); PRESET, STEPS as for train-skel.
+FROM ?=
+OUT ?=
+
+rig:
+	$(if $(and $(FROM),$(OUT)),,$(error give FROM=RAW and OUT=RIG.glb, e.g. make rig FROM=scans OUT=scan.glb PRESET=cpu))
+	$(NMJAX) rig --from $(FROM) --out $(OUT) --preset $(PRESET) $(if $(STEPS),--steps $(STEPS)) $(ARGS)
 
 train-skel:
 	$(NMJAX) train-skel $(SKEL_FLAGS) $(ARGS)

@@ -11,38 +11,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import trimesh
+from captures import bad_capture, body, write_frames
 
 from nmjax import run_folder
 from nmjax.cli import main as nmjax_main
-from nmjax.data import layout, prepare, synthetic
+from nmjax.data import layout, prepare
 from nmjax.data.datasets import load_sequences
 from nmjax.data.streaming import sequence_seeds
 
 POINTS = 256
-
-
-def body(frames: int, points: int = 400, seed: int = 0) -> np.ndarray:
-    """(frames, points, 3) float32 surface points of a moving synthetic arm."""
-    return synthetic.simulate("synth-arm", frames, points=points, rng=seed).vertices
-
-
-def write_frame(path: Path, points: np.ndarray) -> None:
-    """One point-cloud frame in the format its suffix names."""
-    if path.suffix == ".ply":
-        trimesh.PointCloud(points).export(path)
-    elif path.suffix == ".npy":
-        np.save(path, points)
-    else:  # .xyz / .txt: one `x y z` line a point
-        np.savetxt(path, points)
-
-
-def write_frames(folder: Path, frames: list[np.ndarray], suffix: str) -> list[Path]:
-    folder.mkdir(parents=True)
-    paths = [folder / f"frame_{t:03d}{suffix}" for t in range(len(frames))]
-    for path, points in zip(paths, frames, strict=True):
-        write_frame(path, points)
-    return paths
 
 
 def prepare_capture(*argv) -> int:
@@ -95,6 +72,25 @@ def test_point_frames_of_every_format_are_resampled_to_the_points_asked_for(tmp_
                 assert len(np.unique(vertices[t], axis=0)) == POINTS
             else:
                 assert distance_to(cloud.astype(np.float32), vertices[t]).max() < 1e-5
+
+
+def test_a_folder_of_frames_handed_over_as_it_is_is_one_sequence(tmp_path):
+    raw, out = tmp_path / "wave", tmp_path / "out"
+    frames = list(body(4, POINTS))
+    write_frames(raw, frames, ".ply")
+    (raw / "readme.txt").write_text("no frame number: not a frame\n")
+    assert list(prepare.find_sequences(raw)) == ["wave"]
+    assert prepare_capture("--from", raw, "--root", out, "--points", POINTS) == 0
+    meta = json.loads((out / "meta.json").read_text())
+    assert meta["frames"] == {"wave": 4, "wave_test": 4}  # too short to cut: a copy
+    (seq,) = load_sequences("capture", "train", out)
+    np.testing.assert_array_equal(seq.vertices, frames)
+    # .npy files directly in RAW stay (T, N, 3) arrays, one sequence each.
+    arrays = tmp_path / "arrays"
+    arrays.mkdir()
+    np.save(arrays / "frame_000.npy", frames[0])
+    with pytest.raises(ValueError, match=r"frame_000\.npy holds an array of shape \(256, 3\)"):
+        prepare.raw_sequences(arrays)
 
 
 @pytest.mark.parametrize("suffix", [".npy", ".npz"])
@@ -264,67 +260,6 @@ def test_split_json_naming_a_sequence_raw_lacks_is_refused_with_the_name(tmp_pat
 
 
 # --- bad input: one line, exit 2, nothing left in OUT ----------------------------------------
-
-
-def _nan_at(points: np.ndarray, index: int, value: float = np.nan) -> np.ndarray:
-    points = points.copy()
-    points[index, 1] = value
-    return points
-
-
-def bad_capture(raw: Path, case: str) -> None:
-    """Writes the capture of one bad-input `case` into `raw`."""
-    frames = list(body(4, 300))
-    if case in ("nan-ply", "inf-xyz", "nan-npy-frame"):
-        suffix = {"nan-ply": ".ply", "inf-xyz": ".xyz", "nan-npy-frame": ".npy"}[case]
-        value = np.inf if case == "inf-xyz" else np.nan
-        frames[3] = _nan_at(frames[3], 7, value)
-        write_frames(raw / "wave", frames, suffix)
-    elif case == "nan-obj":
-        (raw / "wave").mkdir(parents=True)
-        for t in range(3):
-            box = trimesh.creation.box()
-            if t == 2:
-                box.vertices[5] = np.nan
-            box.export(raw / "wave" / f"frame_{t:03d}.obj")
-    elif case == "nan-array":
-        raw.mkdir()
-        sequence = np.stack(frames)
-        sequence[2, 5, 0] = np.nan
-        np.savez(raw / "wave.npz", sequence)
-    elif case == "junk-xyz":
-        write_frames(raw / "wave", frames, ".xyz")
-        (raw / "wave" / "frame_002.xyz").write_text("these are not numbers\n")
-    elif case == "two-columns":
-        write_frames(raw / "wave", [x[:, :2] for x in frames], ".txt")
-    elif case == "empty-ply":
-        write_frames(raw / "wave", frames, ".ply")
-        (raw / "wave" / "frame_001.ply").write_text(
-            "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
-            "property float z\nend_header\n"
-        )
-    elif case == "junk-ply":
-        write_frames(raw / "wave", frames, ".ply")
-        (raw / "wave" / "frame_001.ply").write_bytes(b"not a ply file\x00\xff")
-    elif case == "mixed":
-        write_frames(raw / "wave", frames, ".ply")
-        trimesh.creation.box().export(raw / "wave" / "frame_002.ply")
-    elif case == "two-arrays":
-        raw.mkdir()
-        np.savez(raw / "wave.npz", a=np.stack(frames), b=np.stack(frames))
-    elif case == "flat-array":
-        raw.mkdir()
-        np.save(raw / "wave.npy", np.stack(frames)[..., :2])
-    elif case == "one-frame":
-        raw.mkdir()
-        np.save(raw / "wave.npy", np.stack(frames[:1]))
-    elif case == "folder-and-array":
-        write_frames(raw / "wave", frames, ".ply")
-        np.save(raw / "wave.npy", np.stack(frames))
-    elif case == "empty-folder":
-        (raw / "wave").mkdir(parents=True)
-    else:
-        raise AssertionError(case)
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,14 @@ MISSING = "/nonexistent/nmjax-run"
 
 # command -> [(argv after the command, text the one line must hold)]
 BAD_INPUTS = {
+    "rig": [
+        (["--from", MISSING, "--out", "rig.glb"], MISSING),
+        (["--from", MISSING, "--out", "rig.gltf"], ".glb"),
+        (["--from", MISSING], "--out"),
+        (["--from", MISSING, "--out", "rig.glb", "--steps", "0"], "--steps"),
+        (["--from", MISSING, "--out", "rig.glb", "--minutes", "0"], "--minutes"),
+        (["--from", MISSING, "--out", "rig.glb", "--steps", "5", "--minutes", "1"], "--steps"),
+    ],
     "prepare-data": [(["--data", "nope"], "'nope'"), (["--data", "dfaust"], "--from")],
     "synthesize": [(["nope"], "nope")],
     "train-skel": [

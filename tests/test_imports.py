@@ -242,7 +242,7 @@ LAYERS = (
     ("nmjax.run_folder", "nmjax.rows"),
     ("nmjax.train",),
     ("nmjax.tasks",),
-    ("nmjax.evaluate", "nmjax.view", "nmjax.release", "nmjax.export", "nmjax.bench"),
+    ("nmjax.evaluate", "nmjax.view", "nmjax.release", "nmjax.export", "nmjax.bench", "nmjax.rig"),
     ("nmjax.cli",),
 )
 

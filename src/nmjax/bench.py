@@ -221,6 +221,31 @@ def bench_skel(cfg: Any, preset: str, steps: int, warmup: int) -> dict[str, Any]
 # --- phase 2 ----------------------------------------------------------------------------------
 
 
+# Timed steps (after 2 warm-up steps) behind a budget in minutes (`train-skel --fit-minutes`,
+# `nmjax rig --minutes`): enough for a steady median.
+FIT_TIMED_STEPS = 5
+
+
+def fit_to_minutes(cfg: Any, minutes: float, started: float) -> tuple[Any, float]:
+    """`cfg` (a SkelTrainConfig) with as many steps as fit `minutes` of wall time counted from
+    `started` (time.perf_counter), the step timed here first (`bench_skel`, on the run's data)
+    and the schedule scaled with the steps (`config.fit_schedule`).
+
+    Returns:
+      (the fitted configuration, the measured seconds per step).
+
+    Raises:
+      ValueError: several processes (each would read its own clock), or too few minutes.
+    """
+    from nmjax.config import fit_schedule
+
+    if jax.process_count() > 1:
+        raise ValueError("a budget in minutes works in single-process runs only; set steps instead")
+    row = bench_skel(cfg, "fit", steps=FIT_TIMED_STEPS, warmup=2)
+    per_step = row["compute_s_median"] + row["load_s_per_step"]
+    return fit_schedule(cfg, per_step, minutes, time.perf_counter() - started), per_step
+
+
 def hand_tree(num_keypoints: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """(parents, order) of a hand-like tree: five chains from the root, depth about K / 5."""
     parents = tuple(max(k - 5, 0) for k in range(num_keypoints))

@@ -5,7 +5,8 @@ validation figures) and the extracted tree (`draw_skeleton`, `extract-skeleton`)
 tasks: observed against generated skeletons (`plot_motion`, validation of `train-dyn`) and 3D
 frames of several motions as a GIF and a PNG strip (`write_motion_pictures`, `generate`,
 `interpolate`, `retarget`). Evaluation: the generation measures against the horizon
-(`plot_generation`) and M-CD against the sampling rate (`plot_mcd`). Callers import this module
+(`plot_generation`) and M-CD against the sampling rate (`plot_mcd`). `nmjax rig`: the skinned
+surface over the capture's points (`draw_rig`). Callers import this module
 where they draw, so that commands which draw nothing do not load matplotlib.
 """
 
@@ -323,6 +324,55 @@ def write_motion_pictures(
     images = render_frames(motions, labels, parents, clouds=clouds)
     write_gif(stem.with_name(stem.name + ".gif"), images)
     write_strip(stem.with_name(stem.name + ".png"), images)
+
+
+# --- a rig over its capture (`nmjax rig`) --------------------------------------------------------
+
+
+def draw_rig(
+    path: str | os.PathLike,
+    frames: np.ndarray,
+    captured: np.ndarray,
+    surface: np.ndarray,
+    joints: np.ndarray,
+    parents,
+    title: str = "",
+) -> None:
+    """A rig's skinned surface over its capture's points at a few frames, one 3D panel a frame
+    (RIG.png of `nmjax rig`: what to look at before opening the .glb).
+
+    Coordinates are in glTF's axes (+Y up, +Z towards the viewer, as the file holds them); the
+    panels show +Y upwards, seen from the front, all at the same scale.
+
+    Args:
+      path: PNG file, written atomically.
+      frames: (F,) the frame numbers shown (panel titles).
+      captured: (F, N, 3) the capture's points at those frames (grey).
+      surface: (F, V, 3) the skinned mesh vertices or points at those frames (coloured).
+      joints: (F, J, 3) the rig's joints; parents: (J,) its tree, the root its own parent.
+      title: the figure's title.
+    """
+
+    def shown(x: np.ndarray) -> np.ndarray:  # glTF (x, y up, z front) -> matplotlib (x, -z, y)
+        x = np.asarray(x, np.float64)
+        return np.stack([x[..., 0], -x[..., 2], x[..., 1]], axis=-1)
+
+    captured, surface, joints = shown(captured), shown(surface), shown(joints)
+    every = np.concatenate([captured.reshape(-1, 3), surface.reshape(-1, 3)])
+    lo, hi = every.min(axis=0), every.max(axis=0)
+    pad = 0.05 * float(np.max(hi - lo))
+    lo, hi = lo - pad, hi + pad
+    fig = plt.figure(figsize=(3.2 * len(frames), 3.6))
+    for i, t in enumerate(frames):
+        ax = _skeleton_axes(fig, 1, len(frames), i + 1, lo, hi, f"frame {int(t)}")
+        ax.view_init(elev=12, azim=-80)
+        ax.scatter(*captured[i].T, s=0.4, c="0.55", alpha=0.35, depthshade=False)
+        ax.scatter(*surface[i].T, s=0.6, c="tab:orange", alpha=0.5, depthshade=False)
+        for k, p in enumerate(parents):
+            if p != k:
+                ax.plot(*joints[i, [p, k]].T, "-", color="tab:blue", lw=1.8)
+        ax.scatter(*joints[i].T, s=10, c="tab:blue", depthshade=False)
+    save_figure(fig, path, title=title or None, dpi=110)
 
 
 # --- evaluation plots ----------------------------------------------------------------------------

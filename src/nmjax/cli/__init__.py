@@ -17,6 +17,11 @@ from typing import NoReturn
 
 # name -> (module under nmjax.cli, function, one-line help)
 COMMANDS: dict[str, tuple[str, str, str]] = {
+    "rig": (
+        "rig",
+        "rig",
+        "your capture to a skinned, animated rig (.glb, .bvh) in one command",
+    ),
     "prepare-data": ("data", "prepare_data", "write a dataset in the nmjax layout"),
     "synthesize": ("data", "synthesize", "generate one synthetic set and time it"),
     "train-skel": ("train", "train_skel", "phase 1: train the keypoint detector and affinity"),

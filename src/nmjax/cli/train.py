@@ -234,25 +234,14 @@ def train_config(args: argparse.Namespace, phase: str):
     return cfg
 
 
-# Timed steps (after 2 warm-up steps) behind --fit-minutes: enough for a steady median.
-FIT_TIMED_STEPS = 5
-
-
 def fit_to_minutes(cfg, args: argparse.Namespace, started: float):
-    """--fit-minutes: times `cfg`'s step (`nmjax.bench.bench_skel`) and fits the schedule.
+    """--fit-minutes: times `cfg`'s step and fits the schedule (`nmjax.bench.fit_to_minutes`).
 
     `started` is the command's start (time.perf_counter), so the budget covers the timing too.
     """
-    import jax
-
     from nmjax import bench
-    from nmjax.config import fit_schedule
 
-    if jax.process_count() > 1:
-        raise ValueError("--fit-minutes works in single-process runs only; set --steps instead")
-    row = bench.bench_skel(cfg, "fit", steps=FIT_TIMED_STEPS, warmup=2)
-    per_step = row["compute_s_median"] + row["load_s_per_step"]
-    fitted = fit_schedule(cfg, per_step, args.fit_minutes, time.perf_counter() - started)
+    fitted, per_step = bench.fit_to_minutes(cfg, args.fit_minutes, started)
     print(
         f"--fit-minutes {args.fit_minutes:g}: {per_step:.3f} s per step -> {fitted.loop.steps} "
         f"steps, learning-rate milestones {fitted.optim.lr_milestones}, training stops by "

@@ -203,6 +203,43 @@ def load_sequences(
     return sequences
 
 
+def whole_sequence(name: str, seq: str, root: str | os.PathLike | None = None) -> np.ndarray:
+    """(T, N, 3) float32: every frame of the raw sequence `seq` of a prepared set, in order.
+
+    A sequence `prepare-data` cut into a training and a test part (a single sequence; meta.json's
+    `cut_from`, `nmjax.data.streaming.hold_out_test`) is put back together from its parts; any
+    other is the sequence as written, from whichever split holds it.
+
+    Raises:
+      ValueError: `seq` is neither a prepared sequence nor one that was cut (naming those there),
+        or its parts leave frames out.
+    """
+    loaded = {s.name: s for split in layout.SPLITS for s in load_sequences(name, split, root)}
+    cut = layout.read_meta(name, root).get("cut_from") or {}
+    parts = {part: info["frames"] for part, info in cut.items() if info.get("sequence") == seq}
+    if not parts:
+        if seq not in loaded:
+            held = sorted({*loaded, *(i.get("sequence") for i in cut.values())} - set(cut))
+            raise ValueError(
+                f"{layout.dataset_root(name, root)} holds no sequence {seq!r}; it holds "
+                f"{', '.join(map(str, held[:8]))}"
+            )
+        return np.asarray(loaded[seq].vertices, np.float32)
+    end = max(hi for _, hi in parts.values())
+    first = loaded[next(iter(parts))].vertices
+    out = np.empty((end, *first.shape[1:]), np.float32)
+    covered = np.zeros(end, bool)
+    for part, (lo, hi) in parts.items():
+        out[lo:hi] = loaded[part].vertices
+        covered[lo:hi] = True
+    if not covered.all():
+        raise ValueError(
+            f"{layout.dataset_root(name, root)}: the parts of {seq!r} in meta.json's cut_from "
+            f"leave frames out ({cut}); prepare the capture again"
+        )
+    return out
+
+
 def crop_span(frames: int, sample_rate: int) -> int:
     """Original frames covered by a crop of `frames` frames taken every `sample_rate` frames."""
     return (frames - 1) * sample_rate + 1

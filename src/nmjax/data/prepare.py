@@ -20,7 +20,9 @@ or, for any real set and for a user's own capture (no --data: the generic `captu
 - `RAW/<seq>/`, one file a frame, ordered by name with numbers compared as numbers (frame_2 <
   frame_10): meshes (.obj / .ply / .off), or point clouds (a .ply / .obj / .off with vertices
   only, .xyz / .txt with x y z a line, .npy of shape (N, 3)); optionally `joints.npy` (T, J, 3);
-- `RAW/<seq>.npy` or `.npz`: the sequence's points as one (T, N, 3) array.
+- `RAW/<seq>.npy` or `.npz`: the sequence's points as one (T, N, 3) array;
+- or RAW itself one folder of frames (no sub-folders of frames, no arrays): one sequence, named
+  after the folder.
 
 Every frame becomes `--points` points: a mesh sampled area-uniformly on its surface (trimesh), a
 point cloud of N points resampled (`resample_points`: N > P keeps P distinct points drawn at
@@ -138,7 +140,9 @@ def frame_files(folder: Path) -> list[Path]:
 
 def find_sequences(source: Path) -> dict[str, list[Path] | Path]:
     """Sequence name -> its frames in order (a sub-folder of `source`, `frame_files`), or the
-    one file that holds it (`source/<seq>.npy` or `.npz`, a (T, N, 3) array).
+    one file that holds it (`source/<seq>.npy` or `.npz`, a (T, N, 3) array). A `source` that
+    holds neither but frames of its own (.obj / .ply / .off / .xyz / .txt: one folder of frames
+    handed over as it is) is one sequence, named after the folder.
 
     Raises:
       FileNotFoundError: `source` is no folder, or holds neither.
@@ -166,6 +170,10 @@ def find_sequences(source: Path) -> dict[str, list[Path] | Path]:
                     )
                 sequences[entry.stem] = entry
     if not sequences:
+        # .npy files directly in `source` are (T, N, 3) arrays (above), never frames of it.
+        own = [p for p in frame_files(source) if p.suffix.lower() not in POINT_ARRAY_SUFFIXES]
+        if own:
+            return {source.resolve().name: own}
         raise FileNotFoundError(
             f"--from {source}: no sub-folder holds {'/'.join(FRAME_SUFFIXES)} frames and no "
             f"{'/'.join(POINT_ARRAY_SUFFIXES)} array is there; {expected}"
@@ -224,12 +232,12 @@ def read_frames(paths: Sequence[Path], points: int, seeds: np.ndarray) -> np.nda
     return sampled
 
 
-def folder_sequence(source: Path, seq: str, paths: list[Path]) -> SourceSequence:
+def folder_sequence(seq: str, paths: list[Path]) -> SourceSequence:
     """A folder of frame files (`read_frames`), with its joints.npy when it has one."""
 
     def read(points: int, seeds: np.ndarray) -> dict:
         vertices = read_frames(paths[: len(seeds)], points, seeds)
-        raw_joints, joints = source / seq / JOINTS_FILE, None
+        raw_joints, joints = paths[0].parent / JOINTS_FILE, None
         if raw_joints.is_file():
             joints = read_joints(raw_joints, len(paths))[: len(seeds)]
         return {"joints": joints, "vertices": vertices}
@@ -264,7 +272,7 @@ def raw_sequences(source: Path) -> tuple[list[SourceSequence], str]:
             listed.append(array_sequence(seq, found))
             forms.add("point-arrays")
         else:
-            listed.append(folder_sequence(source, seq, found))
+            listed.append(folder_sequence(seq, found))
             mesh = found[0].suffix.lower() in MESH_SUFFIXES
             forms.add("mesh-folders" if mesh else "point-folders")
     return listed, "+".join(form for form in FORMS if form in forms)

@@ -5,7 +5,9 @@ The file: one node per joint (named `joint_<k>`, children as in the tree, its TR
 pose), a skin over them with inverse bind matrices, an animation with a rotation and a
 translation channel per joint (LINEAR samplers keyed at frame / fps, see `nmjax.export.rig` for
 why every joint has a translation), and, with a mesh, a skinned mesh (POSITION, JOINTS_0,
-WEIGHTS_0: the four largest weights per vertex) on a node of its own beside the skeleton.
+WEIGHTS_0: the four largest weights per vertex) on a node of its own beside the skeleton; a
+rig whose surface has no faces (a point cloud, `Rig.faces` None) is skinned the same way as a
+POINTS primitive.
 """
 
 from __future__ import annotations
@@ -122,7 +124,8 @@ def build(rig: Rig) -> tuple[pygltflib.GLTF2, bytes]:
 
 def _add_mesh(gltf: pygltflib.GLTF2, buffer: _Buffer, rig: Rig) -> int:
     """The skinned mesh and its node (returned); glTF ignores a skinned mesh node's own
-    transform, so it sits at the scene's top level."""
+    transform, so it sits at the scene's top level. Without faces the vertices are one POINTS
+    primitive (no indices), skinned alike."""
     index, weights = top_influences(rig.weights)
     joint_type = pygltflib.UNSIGNED_BYTE if len(rig.joints) <= 256 else pygltflib.UNSIGNED_SHORT
     array_buffer = pygltflib.ARRAY_BUFFER
@@ -133,12 +136,15 @@ def _add_mesh(gltf: pygltflib.GLTF2, buffer: _Buffer, rig: Rig) -> int:
         JOINTS_0=buffer.add(index, pygltflib.VEC4, joint_type, array_buffer),
         WEIGHTS_0=buffer.add(weights, pygltflib.VEC4, pygltflib.FLOAT, array_buffer),
     )
-    indices = buffer.add(
-        np.asarray(rig.faces).reshape(-1),
-        pygltflib.SCALAR,
-        pygltflib.UNSIGNED_INT,
-        pygltflib.ELEMENT_ARRAY_BUFFER,
-    )
+    points = rig.faces is None or len(rig.faces) == 0
+    indices = None
+    if not points:
+        indices = buffer.add(
+            np.asarray(rig.faces).reshape(-1),
+            pygltflib.SCALAR,
+            pygltflib.UNSIGNED_INT,
+            pygltflib.ELEMENT_ARRAY_BUFFER,
+        )
     gltf.materials.append(
         pygltflib.Material(
             name="skin",
@@ -148,9 +154,11 @@ def _add_mesh(gltf: pygltflib.GLTF2, buffer: _Buffer, rig: Rig) -> int:
             ),
         )
     )
-    primitive = pygltflib.Primitive(attributes=attributes, indices=indices, material=0)
-    gltf.meshes.append(pygltflib.Mesh(name="mesh", primitives=[primitive]))
-    gltf.nodes.append(pygltflib.Node(name="mesh", mesh=0, skin=0))
+    mode = pygltflib.POINTS if points else pygltflib.TRIANGLES
+    primitive = pygltflib.Primitive(attributes=attributes, indices=indices, material=0, mode=mode)
+    name = "points" if points else "mesh"
+    gltf.meshes.append(pygltflib.Mesh(name=name, primitives=[primitive]))
+    gltf.nodes.append(pygltflib.Node(name=name, mesh=0, skin=0))
     return len(gltf.nodes) - 1
 
 
@@ -209,7 +217,8 @@ class Animated:
       names: (J,) joint node names; parents: (J,) parent indices into them (root its own).
       times: (T,) key times in seconds.
       positions: (T, J, 3) joint world positions; rotations: (T, J, 3, 3) world rotations.
-      vertices: (T, V, 3) the skinned mesh at every key, or None; faces: (F, 3) or None.
+      vertices: (T, V, 3) the skinned mesh (or points) at every key, or None; faces: (F, 3),
+        or None for points or no mesh.
     """
 
     names: list[str]
@@ -313,7 +322,8 @@ def read(path: str | Path) -> Animated:
         weights = accessor_array(gltf, blob, primitive.attributes.WEIGHTS_0).astype(np.float64)
         ibm = accessor_array(gltf, blob, skin.inverseBindMatrices).reshape(-1, 4, 4)
         vertices = skin_vertices(rest_vertices, joints, weights, positions, rotations, ibm)
-        faces = accessor_array(gltf, blob, primitive.indices).reshape(-1, 3).astype(np.int64)
+        if primitive.indices is not None:  # a POINTS primitive has none
+            faces = accessor_array(gltf, blob, primitive.indices).reshape(-1, 3).astype(np.int64)
     names = [gltf.nodes[n].name or f"node_{n}" for n in nodes]
     return Animated(names, parents, times, positions, rotations, vertices, faces)
 

@@ -45,7 +45,8 @@ class Rig:
       rest_positions: (J, 3), rest_rotations: (J, 3, 3): the rest (bind) pose.
       frame_rate: frames per second.
       vertices: (V, 3) mesh in the rest pose, or None (a skeleton only).
-      faces: (F, 3) triangles of the mesh.
+      faces: (F, 3) triangles of the mesh, or None: the vertices are a point cloud (written as
+        glTF POINTS).
       weights: (V, J) skin weights, rows summing to 1.
     """
 

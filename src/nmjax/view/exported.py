@@ -29,7 +29,7 @@ class GltfViewer(Viewer):
         lo, hi = cloud.reshape(-1, 3).min(axis=0), cloud.reshape(-1, 3).max(axis=0)
         centre, extent = (lo + hi) / 2.0, max(float(np.max(hi - lo)), 1e-6)
         self.mesh = None
-        if data.vertices is not None:
+        if data.vertices is not None and data.faces is not None:
             self.mesh = self.add(
                 "add_mesh_simple",
                 "/gltf/mesh",
@@ -38,6 +38,15 @@ class GltfViewer(Viewer):
                 color=MESH_COLOR,
                 opacity=0.75,
                 side="double",
+            )
+        elif data.vertices is not None:  # a skinned point cloud (glTF POINTS)
+            self.mesh = self.add(
+                "add_point_cloud",
+                "/gltf/points",
+                points=data.vertices[0].astype(np.float32),
+                colors=MESH_COLOR,
+                point_size=0.005 * extent,
+                point_shape="circle",
             )
         indices = [_keypoint_index(name, j) for j, name in enumerate(data.names)]
         colors = keypoint_colors(max(indices) + 1)[indices]
@@ -55,8 +64,10 @@ class GltfViewer(Viewer):
         return len(self.data.times)
 
     def draw(self, t: int) -> None:
-        if self.mesh is not None:
+        if self.mesh is not None and self.data.faces is not None:
             self.mesh.vertices = self.data.vertices[t].astype(np.float32)
+        elif self.mesh is not None:
+            self.mesh.points = self.data.vertices[t].astype(np.float32)
         self.pose.show(self.data.positions[t])
 
 

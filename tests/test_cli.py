@@ -31,6 +31,12 @@ BAD_INPUTS = {
     ],
     "extract-skeleton": [(["--run", MISSING], MISSING), ([], "--run")],
     "export-keypoints": [(["--run", MISSING], MISSING), (["--split", "val"], "val")],
+    "refine": [
+        (["--run", MISSING], MISSING),
+        ([], "--run"),
+        (["--run", MISSING, "--iters", "0"], "--iters"),
+        (["--run", MISSING, "--split", "val"], "val"),
+    ],
     "train-dyn": [
         (["--data", "nope"], "'nope'"),
         (["--skel-run", MISSING], MISSING),

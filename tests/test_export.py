@@ -378,6 +378,56 @@ def test_phase1_run_exports_keypoints_with_swing_rotations(runs, tmp_path):
     assert_no_validator_errors(out)
 
 
+def test_phase1_run_exports_the_refined_skeleton_of_a_refined_sequence(runs, tmp_path, capsys):
+    import shutil
+
+    from nmjax import run_folder
+    from nmjax.export.refine import refine_run
+    from nmjax.skeleton_refine import RefineSettings
+
+    run = tmp_path / "skel"
+    shutil.copytree(runs["skel"], run)
+    settings = RefineSettings(iterations=2, surface_points=64, target_points=64)
+    (done,) = refine_run(run, settings=settings, progress=False)
+    refined = run_folder.read_refined(run, "test", done.name)
+    out = tmp_path / "refined.glb"
+    assert export("--run", run, "--seq", done.name, "--out", out, "--up", "y") == 0
+    assert capsys.readouterr().out.strip().endswith("(the refined skeleton)")
+    axes = rigmath.file_axes(1)
+    positions = in_file_axes(refined["positions"], up_axis=1)
+    doc, blob = load_gltf(out)
+    assert doc.animations[0].name == f"{done.name}_refined"
+    _, world = world_matrices(doc, blob)
+    by_name = {doc.nodes[n].name: world[n] for n in doc.skins[0].joints}
+    size = size_of(positions)
+    for j, k in enumerate(refined["joints"]):
+        # The refined joints and their full rotations (with twist), in the file's axes.
+        np.testing.assert_allclose(
+            by_name[f"joint_{k}"][:, :3, 3], positions[:, j], atol=FK_TOLERANCE * size
+        )
+        rotation = axes @ refined["rotations"][:, j] @ axes.T
+        np.testing.assert_allclose(by_name[f"joint_{k}"][:, :3, :3], rotation, atol=1e-5)
+    lengths = np.linalg.norm(positions - positions[:, refined["parents"]], axis=-1)
+    assert np.max(lengths.std(axis=0)) < 1e-6
+    assert_no_validator_errors(out)
+    # --unrefined: the detector's keypoints again, whatever is stored.
+    argv = ["--run", run, "--seq", done.name, "--out", tmp_path / "kp.glb", "--up", "y"]
+    assert export(*argv, "--unrefined") == 0
+    assert "refined" not in capsys.readouterr().out
+    doc, blob = load_gltf(tmp_path / "kp.glb")
+    _, joints = joint_positions(doc, blob)
+    keypoints = run_folder.load_trajectories(run, "test")[done.name][..., :3]
+    keypoints = in_file_axes(keypoints, up_axis=1)
+    for k in range(K):
+        np.testing.assert_allclose(joints[f"joint_{k}"], keypoints[:, k], atol=FK_TOLERANCE * size)
+    assert export("--run", run, "--seq", done.name, "--out", tmp_path / "refined.bvh") == 0
+    assert "(the refined skeleton)" in capsys.readouterr().out
+    line = refused(
+        capsys, tmp_path / "x.glb", "--run", runs["nm"], "--seq", done.name, "--unrefined"
+    )
+    assert "--unrefined" in line and "phase-1" in line
+
+
 def write_generate_output(folder, keep):
     """A generate.npz as `nmjax generate` writes it (2 inputs, 3 samples, 5 frames)."""
     rng = np.random.default_rng(4)

@@ -232,6 +232,7 @@ LAYERS = (
         "nmjax.losses",
         "nmjax.metrics",
         "nmjax.skeleton",
+        "nmjax.skeleton_refine",
         "nmjax.parents",
         "nmjax.atomic",
         "nmjax.config",

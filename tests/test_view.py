@@ -230,6 +230,35 @@ def test_phase1_scene_follows_the_frame_slider(tiny):
     view.check_port("127.0.0.1", port)  # released: free to listen on again
 
 
+def test_phase1_scene_shows_the_refined_skeleton_of_a_refined_sequence(tiny, tmp_path):
+    import shutil
+
+    from nmjax.export.refine import refine_run
+    from nmjax.skeleton_refine import RefineSettings
+
+    run = tmp_path / "skel"
+    shutil.copytree(tiny["skel"], run)
+    names = sorted(run_folder.load_trajectories(run, "train"))
+    settings = RefineSettings(iterations=2, surface_points=48, target_points=48)
+    refine_run(run, seq=names[0], split="train", settings=settings, progress=False)
+    refined = run_folder.read_refined(run, "train", names[0])
+    with opened(run, split="train", seq=names[0]) as viewer:
+        assert {"/refined/keypoints", "/refined/skeleton/bones"} <= set(viewer.nodes)
+        pose = viewer.refined
+        np.testing.assert_array_equal(pose.pairs, view.bone_pairs(refined["parents"]))
+        for t in (0, 3):
+            viewer.frame.value = t
+            np.testing.assert_allclose(
+                pose.keypoints.batched_positions, refined["positions"][t], atol=1e-6
+            )
+        assert pose.keypoints.visible
+        viewer.toggles["refined skeleton"].value = False
+        assert not pose.keypoints.visible and not pose.bones.visible
+        viewer.toggles["refined skeleton"].value = True
+        viewer.sequence.value = names[1]  # not refined: nothing of it drawn
+        assert not pose.keypoints.visible and not pose.bones.visible
+
+
 @pytest.mark.slow  # compiles generation, both interpolations and Slerp: ~10 s
 def test_phase2_scene_shows_generation_and_interpolation(tiny):
     cond, gen, gap = 2, 3, 3

@@ -2,7 +2,8 @@
 
 - `make_runs`: untrained tiny phase-1 and phase-2 runs for the task and evaluation tests (the
   commands under test only need restorable checkpoints, a skeleton and the exported test
-  keypoints, and building them this way costs no training-step compilation);
+  keypoints, and building them this way costs no training-step compilation); `make_skel_run`
+  its phase-1 run alone;
 - `make_fake_run`: a phase-1 run of a known 5-node tree moved by smooth rotations, with no
   detector (phase 2 trains on its keypoints, "sequence" inputs);
 - `poison_after`: a trainer's step hook that makes the state NaN.
@@ -21,14 +22,42 @@ ORDER = (0, 1, 2, 4, 3, 5)
 
 def make_runs(root: Path) -> dict[str, Path]:
     """{"data", "skel", "nm", "vrnn"} folders under `root`: a 3-sequence synth-arm set (12 frames
-    each), a tiny phase-1 run (G=16, K=6) and its "nm" and "vrnn" phase-2 runs."""
+    each), a tiny phase-1 run (G=16, K=6, `make_skel_run`) and its "nm" and "vrnn" phase-2 runs."""
+    from nmjax import run_folder
+    from nmjax.config import dyn_preset
+    from nmjax.skeleton import skeleton_from_parents
+    from nmjax.train import checkpoints, dyn
+
+    runs = make_skel_run(root)
+    skel_run = runs["skel"]
+    skeleton = skeleton_from_parents(np.array(PARENTS))
+    for kind in ("nm", "vrnn"):
+        dcfg = dyn_preset("synth-arm", "tiny")
+        dcfg = dataclasses.replace(
+            dcfg,
+            skel_run=str(skel_run),
+            model=dataclasses.replace(dcfg.model, model=kind),
+            run=str(root / f"dyn-{kind}"),
+        )
+        run = run_folder.prepare_run_dir(root / f"dyn-{kind}", resume=False, config=dcfg)
+        _, dstate = dyn.build(dcfg, skeleton.parents, skeleton.order)
+        with checkpoints.Checkpointer(run_folder.checkpoint_dir(run), 1) as c:
+            c.save(1, dstate)
+        runs[kind] = run
+    return runs
+
+
+def make_skel_run(root: Path) -> dict[str, Path]:
+    """{"data", "skel"} folders under `root`: a 3-sequence synth-arm set (12 frames each) and an
+    untrained tiny phase-1 run on it (G=16, K=6, `PARENTS`, every node kept) with the test
+    split's keypoints exported."""
     from flax import nnx
 
     from nmjax import run_folder
-    from nmjax.config import dyn_preset, skel_preset
+    from nmjax.config import skel_preset
     from nmjax.data import synthetic
     from nmjax.skeleton import skeleton_from_parents
-    from nmjax.train import checkpoints, dyn, skel, trained
+    from nmjax.train import checkpoints, skel, trained
 
     data = synthetic.generate(
         "synth-arm", root / "data", num_sequences=3, frames=12, points=1500, progress=False
@@ -54,21 +83,7 @@ def make_runs(root: Path) -> dict[str, Path]:
         keep=[True] * len(PARENTS),
     )
     trained.export_keypoints(skel_run, "test")
-    runs = {"data": data, "skel": skel_run}
-    for kind in ("nm", "vrnn"):
-        dcfg = dyn_preset("synth-arm", "tiny")
-        dcfg = dataclasses.replace(
-            dcfg,
-            skel_run=str(skel_run),
-            model=dataclasses.replace(dcfg.model, model=kind),
-            run=str(root / f"dyn-{kind}"),
-        )
-        run = run_folder.prepare_run_dir(root / f"dyn-{kind}", resume=False, config=dcfg)
-        _, dstate = dyn.build(dcfg, skeleton.parents, skeleton.order)
-        with checkpoints.Checkpointer(run_folder.checkpoint_dir(run), 1) as c:
-            c.save(1, dstate)
-        runs[kind] = run
-    return runs
+    return {"data": data, "skel": skel_run}
 
 
 def spread_convolutions(model) -> None:

@@ -10,6 +10,8 @@ A phase-1 run (`nmjax train-skel`) holds
     keypoint_stats.npz          `STATS_KEYS`, see `read_skeleton_inputs`} when training ends
     skeleton.json               Algorithm 1's tree (`write_skeleton`)
     keypoints_<split>.npz       {sequence: (T_seq, K, 4)} (`write_trajectories`)
+    refined/<split>/<seq>.npz   optional: a sequence's refined skeleton (`nmjax refine`,
+                                `write_refined`; `REFINED_KEYS`)
 
 and a phase-2 run (`nmjax train-dyn`) config.json (a `DynTrainConfig` whose `skel_run` names its
 phase-1 run), checkpoints/, metrics.jsonl, tb/ and figures/.
@@ -56,6 +58,30 @@ STATS_FILE = "keypoint_stats.npz"
 STATS_KEYS = ("intensities", "rest_positions", "example_voxels", "example_keypoints")
 # ... and what follows from them: the skeleton and each split's keypoints.
 SKELETON_FILE = "skeleton.json"
+# Optional, after phase 1: the articulated refinement of a sequence's skeleton (`nmjax refine`,
+# `nmjax.skeleton_refine`), one file per split and sequence under REFINED_DIR.
+REFINED_DIR = "refined"
+# What a refined file holds: the kept joints (keypoint indices, J) and their tree (J,) as in
+# `nmjax.export.rig.kept_tree`; the rest pose (J, 3) and the rest offsets (J, 3); per frame the
+# local and world rotations (T, J, 3, 3), the joint positions (T, J, 3) and the root (T, 3);
+# the rest surface (V, 3) and its skin weights (V, J); the sequence's normalisation factor (the
+# `box_scale` of p' = s (p - bmin) - 1); the objective's Chamfer term at every iteration; and
+# the settings as a JSON string.
+REFINED_KEYS = (
+    "joints",
+    "parents",
+    "rest_positions",
+    "offsets",
+    "local_rotations",
+    "rotations",
+    "positions",
+    "root",
+    "surface",
+    "weights",
+    "box_scale",
+    "chamfer_history",
+    "settings",
+)
 
 
 def keypoints_file(run: str | Path, split: str) -> Path:
@@ -468,6 +494,84 @@ def read_trajectories(path: str | Path) -> dict[str, np.ndarray]:
             )
         trajectories[name] = x32
     return trajectories
+
+
+# --- phase 1, optional: refined skeletons ---------------------------------------------------------
+
+
+def refined_file(run: str | Path, split: str, seq: str) -> Path:
+    """`<run>/refined/<split>/<seq>.npz`: the refined skeleton of one sequence (`REFINED_KEYS`)."""
+    return Path(run) / REFINED_DIR / split / f"{seq}.npz"
+
+
+def write_refined(run: str | Path, split: str, seq: str, arrays: Mapping[str, Any]) -> Path:
+    """Writes one sequence's refined skeleton atomically (every key of `REFINED_KEYS`; "settings"
+    a JSON string), replacing an earlier refinement of it.
+
+    Raises:
+      ValueError: a key missing or unknown.
+    """
+    if set(arrays) != set(REFINED_KEYS):
+        raise ValueError(
+            f"a refined skeleton holds {', '.join(REFINED_KEYS)}; got {', '.join(sorted(arrays))}"
+        )
+    path = refined_file(run, split, seq)
+    out = {k: np.asarray(v) for k, v in arrays.items() if k != "settings"}
+    atomic.save_npz(path, **out, settings=np.asarray(str(arrays["settings"])))
+    return path
+
+
+def refined_sequences(run: str | Path, split: str) -> list[str]:
+    """The sequences of `split` that hold a refined skeleton, sorted."""
+    folder = Path(run) / REFINED_DIR / split
+    return sorted(p.stem for p in folder.glob("*.npz")) if folder.is_dir() else []
+
+
+def read_refined(run: str | Path, split: str, seq: str) -> dict[str, Any] | None:
+    """One sequence's refined skeleton ({key of `REFINED_KEYS`: array}, "settings" a dict), or
+    None when the sequence has none.
+
+    Raises:
+      ValueError: a damaged file (missing keys, shapes that disagree), naming the command that
+        writes it again.
+    """
+    path = refined_file(run, split, seq)
+    if not path.is_file():
+        return None
+    fix = f"refine it again with `nmjax refine --run {run} --split {split} --seq {seq}`"
+    try:
+        with np.load(path) as z:
+            arrays = {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, EOFError) as err:
+        raise ValueError(f"{path} is not a refined skeleton ({err}); {fix}") from err
+    missing = [k for k in REFINED_KEYS if k not in arrays]
+    if missing:
+        raise ValueError(f"{path} lacks {', '.join(missing)}; {fix}")
+    num, frames = len(arrays["joints"]), len(arrays["positions"])
+    verts = len(arrays["surface"])
+    expected = {
+        "joints": (num,),
+        "parents": (num,),
+        "rest_positions": (num, 3),
+        "offsets": (num, 3),
+        "local_rotations": (frames, num, 3, 3),
+        "rotations": (frames, num, 3, 3),
+        "positions": (frames, num, 3),
+        "root": (frames, 3),
+        "surface": (verts, 3),
+        "weights": (verts, num),
+        "box_scale": (),
+    }
+    wrong = [
+        f"{k} {arrays[k].shape} (expected {v})" for k, v in expected.items() if arrays[k].shape != v
+    ]
+    if wrong:
+        raise ValueError(f"{path}: {'; '.join(wrong)}; {fix}")
+    try:
+        arrays["settings"] = json.loads(str(arrays["settings"]))
+    except json.JSONDecodeError as err:
+        raise ValueError(f"{path}: its settings are not JSON ({err}); {fix}") from err
+    return arrays
 
 
 def motion_format(run: str | Path) -> tuple[float, int]:

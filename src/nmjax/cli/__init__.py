@@ -35,6 +35,11 @@ COMMANDS: dict[str, tuple[str, str, str]] = {
         "export_keypoints",
         "write a phase-1 run's keypoints_{train,test}.npz (phase 2 reads them)",
     ),
+    "refine": (
+        "runs",
+        "refine",
+        "fit an articulated model to a phase-1 run's sequences (a refined skeleton)",
+    ),
     "train-dyn": ("train", "train_dyn", "phase 2: train the VRNN dynamics on a phase-1 run"),
     "import-release": (
         "release",

@@ -23,7 +23,7 @@ import numpy as np
 from nmjax import metrics
 from nmjax.evaluate.stats import summarize
 from nmjax.export.rig import Rig
-from nmjax.export.sources import positions_rig
+from nmjax.export.sources import kept_skin_weights, positions_rig
 
 # results.json's names of the per-sequence scores, in the tables' order.
 SKELETON_CD_KEYS = ("cd_j2j", "cd_j2b", "cd_b2b")
@@ -54,20 +54,9 @@ def crop_rig(
       the rig (J kept joints, rest pose frame 0, swing-only rotations) and its (V, J) skin
       weights: Algorithm 2 (`skeleton.skin_weights`) over the kept nodes at frame 0.
     """
-    from nmjax.skeleton import skeleton_from_parents, skin_weights
-
     parents, keep = skeleton
     rig = positions_rig("crop", keypoints, parents, keep, frame_rate)
-    # Intensities 1 on the kept nodes and 0 elsewhere, pruned at 0.5: Algorithm 2 prunes to
-    # exactly the stored node set, whatever threshold the skeleton was extracted with.
-    weights = skin_weights(
-        surface,
-        np.asarray(keypoints[0, :, :3]),
-        skeleton_from_parents(parents),
-        intensities=np.asarray(keep, np.float32),
-        threshold=0.5,
-    )
-    return rig, weights[:, rig.joints]
+    return rig, kept_skin_weights(surface, keypoints[0], parents, keep)
 
 
 def skinned_surface(rig: Rig, surface: np.ndarray, weights: np.ndarray) -> np.ndarray:

@@ -8,7 +8,10 @@ data's axes (`load`).
   `--seq`: the detector's keypoints of that sequence. These are positions only: rotations are
   swing only, from the bones (`rig.swing_rotations`); rest pose frame 0;
 - a phase-2 run with `--seq`: the model's reconstruction of that sequence (best-of-S
-  posterior) with the model's own rotations (Eq. 2); rest pose frame 0.
+  posterior) with the model's own rotations (Eq. 2); rest pose frame 0;
+- a phase-1 run with `--seq` whose sequence `nmjax refine` refined: the refined skeleton instead
+  of the keypoints (`refined_rig`: constant bone lengths, full rotations with twist, the refined
+  rest pose), unless `--unrefined` asks for the keypoints.
 
 Only the nodes the run's skeleton keeps (skeleton.json `keep`) become joints, each hanging off
 its nearest kept ancestor.
@@ -24,6 +27,8 @@ import numpy as np
 from nmjax.export.rig import Rig, kept_tree, swing_rotations
 
 RETARGET_RIG_KEYS = ("rotations", "rest_rotations", "rest_joints", "rest_vertices", "faces")
+# The animation name of a refined sequence's rig: `<sequence>_refined`.
+REFINED_SUFFIX = "_refined"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +40,7 @@ class Options:
     method: str | None = None
     split: str = "test"
     seed: int = 0
+    unrefined: bool = False  # a phase-1 run: the keypoints even where a refined skeleton is
 
 
 def kind(folder: Path) -> str:
@@ -75,6 +81,10 @@ def load(folder: str | Path, options: Options) -> tuple[Rig, int]:
     """
     folder = Path(folder)
     found = kind(folder)
+    if options.unrefined and found != "skel":
+        raise ValueError(
+            f"--unrefined does not apply to {folder}: only a phase-1 run holds refined skeletons"
+        )
     if found == "retarget":
         _refuse(options, (), f"{folder} (a retarget output is one motion)")
         return _retarget(folder)
@@ -145,6 +155,35 @@ def positions_rig(
         rest_rotations=np.broadcast_to(np.eye(3), (len(joints), 3, 3)).copy(),
         frame_rate=frame_rate,
     )
+
+
+def kept_skin_weights(
+    surface: np.ndarray, rest_keypoints: np.ndarray, parents: np.ndarray, keep: np.ndarray
+) -> np.ndarray:
+    """Algorithm 2's skin weights (`skeleton.skin_weights`) of a rest surface over the kept
+    nodes of a tree, as columns of the kept joints of `positions_rig` (in its joint order).
+
+    Args:
+      surface: (V, 3) the rest surface; rest_keypoints: (K, >= 3) the keypoints of the rest
+        pose; parents: (K,) the tree (full or pruned); keep: (K,) bool kept nodes.
+
+    Returns:
+      (V, J) weights, rows summing to 1.
+    """
+    from nmjax.skeleton import skeleton_from_parents, skin_weights
+
+    tree = skeleton_from_parents(np.asarray(parents))
+    # Intensities 1 on the kept nodes and 0 elsewhere, pruned at 0.5: Algorithm 2 prunes to
+    # exactly the stored node set, whatever threshold the skeleton was extracted with.
+    weights = skin_weights(
+        surface,
+        np.asarray(rest_keypoints)[:, :3],
+        tree,
+        intensities=np.asarray(keep, np.float32),
+        threshold=0.5,
+    )
+    joints, _ = kept_tree(np.asarray(parents), np.asarray(tree.order), keep)
+    return weights[:, joints]
 
 
 def _input_index(names: list[str], seq: str | None, path: Path) -> int:
@@ -230,8 +269,37 @@ def _phase1(run: Path, options: Options) -> tuple[Rig, int]:
     keep = np.ones(skeleton.num_keypoints, bool) if kept is None else kept[1]
     keypoints = _pick(run_folder.load_trajectories(run, options.split), options, run)
     rate, up = run_folder.motion_format(run)
+    refined = (
+        None if options.unrefined else run_folder.read_refined(run, options.split, options.seq)
+    )
+    if refined is not None:
+        if len(refined["positions"]) != len(keypoints):
+            raise ValueError(
+                f"{run_folder.refined_file(run, options.split, options.seq)} has "
+                f"{len(refined['positions'])} frames, the keypoints {len(keypoints)}; refine it "
+                f"again with `nmjax refine --run {run} --split {options.split} --seq "
+                f"{options.seq}` (or pass --unrefined)"
+            )
+        return refined_rig(refined, options.seq, rate), up
     rig = positions_rig(options.seq, keypoints, np.asarray(skeleton.parents), keep, rate)
     return rig, up
+
+
+def refined_rig(arrays: dict[str, np.ndarray], name: str, frame_rate: float) -> Rig:
+    """The rig of a refined sequence (`run_folder.read_refined`'s arrays): its joints and tree,
+    the world rotations and positions of its forward kinematics, its rest pose with identity
+    rotations; the animation named `<name>_refined`."""
+    num = len(arrays["joints"])
+    return Rig(
+        name=f"{name}{REFINED_SUFFIX}",
+        joints=np.asarray(arrays["joints"], np.int64),
+        parents=np.asarray(arrays["parents"], np.int64),
+        positions=np.asarray(arrays["positions"], np.float64),
+        rotations=np.asarray(arrays["rotations"], np.float64),
+        rest_positions=np.asarray(arrays["rest_positions"], np.float64),
+        rest_rotations=np.broadcast_to(np.eye(3), (num, 3, 3)).copy(),
+        frame_rate=frame_rate,
+    )
 
 
 def _phase2(run: Path, options: Options) -> tuple[Rig, int]:

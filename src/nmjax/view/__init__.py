@@ -5,9 +5,9 @@ Four kinds of input, told apart by what they hold:
 - a phase-1 run (`nmjax train-skel`): one sequence of a split with its points (or occupied
   voxels), the detector's keypoints of every frame (colour by index, size by intensity alpha,
   the nodes the skeleton prunes in grey), the bones of the pruned skeleton between kept nodes
-  with the root marked, the ground-truth joints and tree where the dataset has them, and the
-  learned affinity (the influence max_n A_n of docs/architecture.md §7) as the opacity of a line
-  between every pair of keypoints;
+  with the root marked, the ground-truth joints and tree where the dataset has them, the refined
+  skeleton of a sequence `nmjax refine` refined, and the learned affinity (the influence max_n
+  A_n of docs/architecture.md §7) as the opacity of a line between every pair of keypoints;
 - a phase-2 run (`nmjax train-dyn`, model "nm"): the sequence's conditioning frames and S
   generated continuations side by side, and below them the interpolation of a gap by the model
   beside the Lerp and Slerp baselines (and the positional VRNN when a run of it lies beside);
@@ -38,6 +38,7 @@ from nmjax.view.draw import (
     MIN_SIZE,
     PANEL_SPACING,
     POINT_SIZE,
+    REFINED_COLOR,
     ROOT_COLOR,
     TRUTH_COLOR,
     affinity_pairs,
@@ -78,6 +79,7 @@ __all__ = [
     "MIN_SIZE",
     "PANEL_SPACING",
     "POINT_SIZE",
+    "REFINED_COLOR",
     "ROOT_COLOR",
     "TRUTH_COLOR",
     "UP_AXES",

@@ -13,6 +13,7 @@ BONE_COLOR = (40, 40, 40)
 GENERATED_BONE_COLOR = (230, 110, 20)  # bones of frames the model generated
 ROOT_COLOR = (20, 20, 20)  # a wire ball around the root keypoint
 TRUTH_COLOR = (30, 150, 60)
+REFINED_COLOR = (200, 40, 160)  # the skeleton `nmjax refine` fitted
 BODY_COLOR = (120, 160, 210)
 AFFINITY_COLOR = (50, 50, 190)
 MESH_COLOR = (200, 180, 150)

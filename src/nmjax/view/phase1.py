@@ -1,9 +1,10 @@
 """The view of a phase-1 run (`nmjax train-skel`): one sequence of a split with its points (or
 occupied voxels), the detector's keypoints of every frame (colour by index, size by intensity
 alpha, the nodes the skeleton prunes in grey), the bones of the pruned skeleton between kept
-nodes with the root marked, the ground-truth joints and tree where the dataset has them, and the
-learned affinity (the influence max_n A_n of docs/architecture.md §7) as the opacity of a line
-between every pair of keypoints."""
+nodes with the root marked, the ground-truth joints and tree where the dataset has them, the
+refined skeleton where `nmjax refine` refined the sequence (its joints and bones, constant in
+length), and the learned affinity (the influence max_n A_n of docs/architecture.md §7) as the
+opacity of a line between every pair of keypoints."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from nmjax.view.draw import (
     BODY_COLOR,
     KEYPOINT_RADIUS,
     POINT_SIZE,
+    REFINED_COLOR,
     TRUTH_COLOR,
     affinity_pairs,
     cylinder_transforms,
@@ -39,6 +41,8 @@ class Phase1Data:
       sequences: {name: `datasets.Sequence`}, None when the dataset cannot be read here.
       truth_parents: (J,) the dataset's joint tree (meta.json), None when it has none.
       sample_rate, grid, up_axis: of the run's data configuration.
+      refined: {sequence: `run_folder.read_refined`'s arrays} of the sequences `nmjax refine`
+        refined ({} when none).
       note: why a layer is missing, for the user ("" when none is).
     """
 
@@ -54,6 +58,7 @@ class Phase1Data:
     sample_rate: int
     grid: int
     up_axis: int
+    refined: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     note: str = ""
 
     def frames(self, name: str) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -136,8 +141,34 @@ def read_phase1(run: str | Path, split: str = "test") -> Phase1Data:
         sample_rate=data.sample_rate,
         grid=data.grid,
         up_axis=data.up_axis,
+        refined=read_refined_sequences(run, split, keypoints),
         note="; ".join(notes),
     )
+
+
+def read_refined_sequences(
+    run: Path, split: str, keypoints: dict[str, np.ndarray]
+) -> dict[str, dict[str, Any]]:
+    """{sequence: refined arrays} of the sequences of `split` that `nmjax refine` refined.
+
+    Raises:
+      ValueError: a damaged refined file, or one of another number of frames than the keypoints.
+    """
+    from nmjax import run_folder
+
+    out = {}
+    for name in run_folder.refined_sequences(run, split):
+        arrays = run_folder.read_refined(run, split, name)
+        if name not in keypoints or arrays is None:
+            continue
+        if len(arrays["positions"]) != len(keypoints[name]):
+            raise ValueError(
+                f"{run_folder.refined_file(run, split, name)} has {len(arrays['positions'])} "
+                f"frames, the keypoints {len(keypoints[name])}; refine it again with `nmjax "
+                f"refine --run {run} --split {split} --seq {name}`"
+            )
+        out[name] = arrays
+    return out
 
 
 class Phase1Viewer(Viewer):
@@ -169,6 +200,7 @@ class Phase1Viewer(Viewer):
         )
         self.pose = Pose(self, "", data.parents, data.root, keep=data.keep)
         self.truth: Pose | None = None
+        self.refined: Pose | None = None
         self.affinity = None
         if data.influence is not None:
             self.affinity_pairs, strength = affinity_pairs(data.influence)
@@ -199,6 +231,7 @@ class Phase1Viewer(Viewer):
         self.toggle("keypoints", lambda: [self.pose.keypoints])
         self.toggle("skeleton", lambda: self.pose.skeleton_handles)
         self.toggle("ground truth", self._truth_handles)
+        self.toggle("refined skeleton", self._refined_handles)
         self.toggle("affinity", lambda: [] if self.affinity is None else [self.affinity], False)
         self.body_mode.on_update(lambda _: self._switch_body())
         self.sequence.on_update(lambda _: self.load(self.sequence.value))
@@ -213,6 +246,9 @@ class Phase1Viewer(Viewer):
 
     def _truth_handles(self) -> list[Any]:
         return [] if self.truth is None else self.truth.handles
+
+    def _refined_handles(self) -> list[Any]:
+        return [] if self.refined is None else self.refined.handles
 
     def _switch_body(self) -> None:
         voxels = self.body_mode.value == "voxels"
@@ -240,6 +276,20 @@ class Phase1Viewer(Viewer):
                 )
             for handle in self._truth_handles():
                 handle.visible = self.toggles["ground truth"].value and self.joints is not None
+            refined = self.data.refined.get(name)
+            if refined is not None and self.refined is None:
+                # Every refined sequence of a run has the run's kept tree.
+                self.refined = Pose(
+                    self,
+                    "/refined",
+                    refined["parents"],
+                    0,
+                    colors=REFINED_COLOR,
+                    bone_color=REFINED_COLOR,
+                    radius=0.7 * KEYPOINT_RADIUS,
+                )
+            for handle in self._refined_handles():
+                handle.visible = self.toggles["refined skeleton"].value and refined is not None
             self._switch_body()
             cloud = self.data.keypoints[name][..., :3] if self.points is None else self.points
             lo, hi = cloud.reshape(-1, 3).min(axis=0), cloud.reshape(-1, 3).max(axis=0)
@@ -259,6 +309,9 @@ class Phase1Viewer(Viewer):
                 self.body.points = self.points[t]
         if self.truth is not None and self.joints is not None:
             self.truth.show(self.joints[t])
+        refined = self.data.refined.get(self.sequence.value)
+        if self.refined is not None and refined is not None:
+            self.refined.show(refined["positions"][t])
         if self.affinity is not None:
             mu = keypoints[:, :3]
             centres, wxyzs, lengths = cylinder_transforms(

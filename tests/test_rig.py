@@ -453,6 +453,7 @@ def test_blender_deforms_the_rig_as_nmjax_skins_it(which, request, tmp_path):
 # --- the benchmark script ---------------------------------------------------------------------
 
 
+@pytest.mark.slow  # trains a third capture and compiles the step it times: minutes on 2 cores
 def test_the_rig_benchmark_runs_at_a_tiny_size(capsys):
     from experiment_scripts import load_experiment
 

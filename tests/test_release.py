@@ -297,7 +297,12 @@ def test_the_map_covers_every_release_tensor_with_its_shape(released):
     assert expected == shapes
     assert skel.model.channels == 128 and skel.model.hourglass_channels == (32, 48, 72)
     assert (skel.model.num_keypoints, skel.model.grid, skel.data.sample_rate) == (24, 64, 2)
-    assert (dyn.model.latent, dyn.model.hidden, dyn.model.mlp, dyn.frames) == (128, 512, 128, 20)
+    assert (dyn.model.latent, dyn.model.hidden, dyn.model.mlp, dyn.data.frames) == (
+        128,
+        512,
+        128,
+        20,
+    )
     assert dyn.kl_weight == 0.003 and skel.weights.complex == 0.01 and skel.weights.vol == 10.0
 
 
@@ -500,7 +505,7 @@ def test_import_writes_two_run_folders_of_the_imported_values(small, imported, m
     dyn = run_folder.load_config(dyn_run, DynTrainConfig)
     assert (skel.model.num_keypoints, skel.model.channels, skel.data.grid) == (K, 8, 32)
     assert skel.model.hourglass_channels == (8, 8, 8) and skel.data.name == "synth-arm"
-    assert dyn.skel_run == "imported/skel" and dyn.frames == 6 and dyn.model.hidden == 16
+    assert dyn.skel_run == "imported/skel" and dyn.data.frames == 6 and dyn.model.hidden == 16
     for name in ("affinity.npy", "keypoint_stats.npz", "skeleton.json", "release.json"):
         assert (skel_run / name).is_file(), name
     ckpt = release.read_checkpoint(pth)

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nmjax import metrics
-from nmjax.skeleton import linear_blend_skinning
+from nmjax.geometry import linear_blend_skinning
 
 SETTINGS = settings(max_examples=25, deadline=None)
 
